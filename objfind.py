@@ -1,0 +1,865 @@
+"""objfind: object finding in cluttered scenes using interactive perception.
+
+A single-file reimplementation of Novkovic, Pautrat et al., "Object Finding in Cluttered Scenes Using
+Interactive Perception", ICRA 2020. A floating gripper with a wrist RGB-D camera looks for a red
+target among (active task) or inside piles of (interactive task) objects. Each view is fused into a
+TSDF volume with a detection channel, the volume is summarised into the 71 numbers of the paper's
+Fig. 2, and an agent picks the next gripper displacement.
+
+Read top to bottom: settings, perception, volume, encoder, simulation, agents, command line.
+
+    python objfind.py demo --agent scripted     # one episode -> PNG contact sheet + MP4
+    python objfind.py bench                     # per-stage milliseconds and env steps/s
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import os
+import re
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import gymnasium as gym
+import numpy as np
+import pybullet as pb
+import pybullet_data
+
+# ================================================================================================
+# Settings: Table I presets and the constants of Sec. IV-A. Lengths in metres, angles in radians.
+# ================================================================================================
+
+
+@dataclass(frozen=True)
+class Settings:
+    """One task preset of Table I with every constant the world needs; the paper's name beside each."""
+
+    # Table I, simulation columns
+    min_objects: int = 5                # "Min num. objects"
+    max_objects: int = 25               # "Max num. objects"
+    piles: int = 0                      # "Num. of piles"
+    no_target_prob: float = 0.10        # "No target prob."
+    exploration_ratio: float = 0.0      # "Exploration ratio": share of pile-task scenes without piles
+    workspace_m: float = 0.6            # "Workspace length [m]"
+    horizon: int = 130                  # "Time horizon" T
+    # Sec. IV-A
+    trunc_m: float = 0.04               # TSDF truncation distance
+    voxels_per_side: int = 100          # "resolution of 100 voxels per side"
+    max_weight: float = 2.0             # Sec. III-B.1: max TSDF weight, fast forgetting after pushes
+    crop_m: float = 1.2                 # state crop: square around the end-effector
+    max_step_m: float = 0.06            # max translation per step
+    max_turn_rad: float = 0.15          # max roll and yaw per step
+    time_penalty: float = 1.0           # r_t
+    detection_reward: float = 150.0     # r_d
+    # Sec. III-C: simulated detector
+    noise_rate: float = 20.0            # lambda of the Exp(lambda) subtracted from true detections
+    false_positive_share: float = 0.02  # share of pixels turned into false positives, values ~ Exp(lambda)
+    # Table II caption: primitive and shape piles hold more objects
+    objects_per_pile_dense: tuple = (15, 30)
+    # --- where the paper is silent (README, "Choices") ---
+    object_size_m: float = 0.04         # side of a cube; other objects are scaled to about this size
+    image_width: int = 80               # wrist camera, TinyRenderer
+    image_height: int = 60
+    fov_y_deg: float = 45.0             # 58 x 45 degrees, close to the real depth camera's 62 x 45
+    near_m: float = 0.01
+    camera_offset_m: float = 0.08       # camera sits this far behind the fingertips, on the approach axis
+    max_roll_rad: float = 1.0           # tilt limit
+    exploration_normaliser: float = 0.01  # newly explored share of the volume that earns the full r_t
+    seen_threshold: float = 0.2         # target observed once this share of its surface points was seen
+    surface_points: int = 200           # ground-truth points sampled on the target's surface
+    seen_depth_tol_m: float = 0.01      # a point is unoccluded if within this of the rendered depth
+    detection_threshold: float = 0.5    # a detection voxel above this counts as perceived target
+    wall_height_m: float = 0.1
+    gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper
+    physics_hz: int = 240
+    solver_iterations: int = 10         # enough for stable piles, 3x cheaper than pybullet's 50
+    max_substeps: int = 120             # to reach one action's pose, 0.5 s of simulated time at most
+    settle_substeps: int = 48           # then at most this many for pushed objects to come to rest
+    settle_speed: float = 0.02          # objects slower than this (m/s) count as at rest
+
+    @property
+    def voxel_m(self) -> float:
+        return self.workspace_m / self.voxels_per_side
+
+    @property
+    def volume_height_m(self) -> float:
+        """The volume is half as high as it is wide: it holds the tallest pile."""
+        return self.workspace_m / 2
+
+    @property
+    def ceiling_m(self) -> float:
+        """The end-effector stays inside the volume's box (DESIGN: kept inside the workspace)."""
+        return self.volume_height_m
+
+    @property
+    def far_m(self) -> float:
+        return 2.0 * self.workspace_m
+
+    @property
+    def nominal_target_voxels(self) -> float:
+        """Voxels above the detection threshold for a fully seen cube: 5 faces x a band of trunc_m."""
+        return 5 * self.object_size_m ** 2 * self.trunc_m / self.voxel_m ** 3
+
+
+TASKS = {
+    "ap": Settings(),
+    "ap-large": Settings(min_objects=10, max_objects=40, workspace_m=1.2, horizon=500),
+    "ip": Settings(min_objects=15, max_objects=75, piles=3, exploration_ratio=0.25),
+}
+SCENES = ("cubes", "fixed-primitives", "variable-primitives", "random-shapes", "object-models")
+
+# ================================================================================================
+# Perception (Sec. III-B.1, III-C): a CIELAB colour detector and the paper's detector noise.
+# ================================================================================================
+
+TARGET_RGBA = (0.85, 0.05, 0.05, 1.0)
+OTHER_RGBA = (  # clearly non-red: none of these passes the detector under any shading
+    (0.10, 0.30, 0.90, 1), (0.15, 0.65, 0.20, 1), (0.90, 0.85, 0.20, 1), (0.55, 0.55, 0.55, 1),
+    (0.20, 0.70, 0.80, 1), (0.92, 0.92, 0.92, 1), (0.35, 0.35, 0.40, 1), (0.45, 0.25, 0.75, 1),
+)
+RED_MIN_A = 40   # CIELAB a* (green-red axis, signed) a pixel needs to count as red
+RED_MIN_CHROMA_RATIO = 1.2  # ... and a* must dominate |b*| so yellows and purples stay out
+
+
+def detect_target(rgb: np.ndarray) -> np.ndarray:
+    """CIELAB red detector: (H, W, 3) uint8 RGB -> (H, W) float32, 1 on the target, 0 elsewhere."""
+    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB).astype(np.int16)
+    a, b = lab[..., 1] - 128, lab[..., 2] - 128   # OpenCV stores a*, b* offset by 128
+    return ((a > RED_MIN_A) & (a > RED_MIN_CHROMA_RATIO * np.abs(b))).astype(np.float32)
+
+
+def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, s: Settings) -> np.ndarray:
+    """Sec. III-C: true detections lose Exp(lambda); a random 2 % of pixels become Exp(lambda) false positives."""
+    noisy = detections - detections * rng.exponential(1.0 / s.noise_rate, detections.shape)
+    n_false = int(round(s.false_positive_share * detections.size))
+    flat = noisy.reshape(-1)
+    picks = rng.choice(detections.size, n_false, replace=False)
+    flat[picks] = np.maximum(flat[picks], rng.exponential(1.0 / s.noise_rate, n_false))
+    return np.clip(noisy, 0.0, 1.0).astype(np.float32)
+
+# ================================================================================================
+# Volume (Sec. III-B.1): a numpy TSDF with a detection channel, carving and max weight 2.
+# ================================================================================================
+
+
+class TSDFVolume:
+    """A TSDF over the workspace plus a detection channel (a truncated *unsigned* distance of detections).
+
+    Voxel (i, j, k) has its centre at origin + (i + 0.5, j + 0.5, k + 0.5) * voxel_m, the origin at
+    (-size/2, -size/2, 0), as in Open3D's uniform volume. Arrays are indexed [x, y, z]. Unobserved voxels
+    hold tsdf 0 and weight 0 (Open3D's convention), so sums over the volume say how much was observed.
+    """
+
+    def __init__(self, size_m: float, height_m: float, voxels_per_side: int, trunc_m: float,
+                 max_weight: float):
+        self.voxel_m = size_m / voxels_per_side
+        self.shape = (voxels_per_side, voxels_per_side, int(round(height_m / self.voxel_m)))
+        self.origin = np.array([-size_m / 2, -size_m / 2, 0.0])
+        self.trunc_m, self.max_weight = trunc_m, max_weight
+        self.near = np.float32(1e-3)   # voxels closer to the camera than this are not projected
+        self.tsdf = np.zeros(self.shape, np.float32)        # (nx, ny, nz) signed distance / trunc
+        self.weight = np.zeros(self.shape, np.float32)      # (nx, ny, nz) observations, at most max_weight
+        self.detections = np.zeros(self.shape, np.float32)  # (nx, ny, nz) detection score near surfaces
+        # Voxel centres are separable, so we keep three 1-D axes instead of an (N, 3) array: camera
+        # coordinates of a sub-box then come from broadcasting, never from a matrix product per voxel.
+        self.axes = [(np.arange(n, dtype=np.float32) + 0.5) * self.voxel_m + o
+                     for n, o in zip(self.shape, self.origin)]
+        nx, ny, nz = self.shape
+        self.column_xy = [c.reshape(-1) for c in np.meshgrid(self.axes[0], self.axes[1], indexing="ij")]
+        self.flat_index = np.arange(nx * ny * nz, dtype=np.int32).reshape(self.shape)
+
+    def reset(self) -> None:
+        self.tsdf.fill(0.0), self.weight.fill(0.0), self.detections.fill(0.0)
+
+    def observed(self) -> np.ndarray:
+        """(nx, ny, nz) bool: voxels seen at least once (weight above zero)."""
+        return self.weight > 0
+
+    def explored_fraction(self) -> float:
+        return float(np.count_nonzero(self.weight)) / self.weight.size
+
+    def frustum_box(self, depth_m, K, T_world_camera):
+        """Index ranges of the axis-aligned box that bounds the camera frustum up to the farthest depth."""
+        H, W = depth_m.shape
+        far = float(depth_m.max()) + self.trunc_m
+        u = np.array([0, W, 0, W], np.float64)
+        v = np.array([0, 0, H, H], np.float64)
+        rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(4)], 1)  # (4, 3) at z=1
+        corners = np.concatenate([rays * 0.0, rays * far])   # the apex stands in for the near plane
+        world = corners @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
+        lo = np.floor((world.min(0) - self.origin) / self.voxel_m).astype(int)
+        hi = np.ceil((world.max(0) - self.origin) / self.voxel_m).astype(int)
+        lo, hi = np.clip(lo, 0, self.shape), np.clip(hi, 0, self.shape)
+        return [slice(a, b) for a, b in zip(lo, hi)]
+
+    def integrate(self, depth_m: np.ndarray, detections: np.ndarray, K: np.ndarray,
+                  T_world_camera: np.ndarray) -> int:
+        """Fuse one view: (H, W) depth in metres along z (0 = no return), (H, W) detection scores in [0, 1].
+
+        Returns the number of voxels observed for the first time. Only voxels inside the frustum's
+        bounding box are projected; all updates are in place.
+        """
+        if not np.any(depth_m > 0):
+            return 0
+        box = self.frustum_box(depth_m, K, T_world_camera)
+        if any(b.stop <= b.start for b in box):
+            return 0
+        H, W = depth_m.shape
+        # Pixel coordinates are (fx x + cx z) / z and (fy y + cy z) / z, and x, y, z are linear in the
+        # voxel centre, so each numerator is a sum of three 1-D terms broadcast over the box: one
+        # full-size add per quantity instead of a 3 x 3 product per voxel. Everything stays float32.
+        P = (K @ T_world_camera[:3, :3].T).astype(np.float32)               # (3, 3) world -> pixel rows
+        t = T_world_camera[:3, 3].astype(np.float32)
+        d = [ax[b] - t[i] for i, (ax, b) in enumerate(zip(self.axes, box))]  # 1-D offsets from the camera
+
+        def along_box(row):
+            return (row[0] * d[0])[:, None, None] + (row[1] * d[1])[None, :, None] + (row[2] * d[2])[None, None, :]
+
+        z = along_box(P[2])                  # (a, b, c) depth of each voxel along the optical axis
+        u = along_box(P[0]) / z
+        v = along_box(P[1]) / z
+        valid = (z > self.near) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        pixel = v[valid].astype(np.int32) * W + u[valid].astype(np.int32)
+        depth = depth_m.reshape(-1)[pixel]
+        sdf = depth - z[valid]
+        keep = (depth > 0) & (sdf >= -self.trunc_m)   # behind the surface by more than trunc: unseen
+        flat = self.flat_index[tuple(box)][valid][keep]
+        sdf, pixel = sdf[keep], pixel[keep]
+
+        tsdf, weight, det = (a.reshape(-1) for a in (self.tsdf, self.weight, self.detections))
+        w_old = weight[flat]
+        newly = int(np.count_nonzero(w_old == 0))
+        w_sum = w_old + 1.0
+        tsdf[flat] = (tsdf[flat] * w_old + np.minimum(1.0, sdf / self.trunc_m)) / w_sum
+        # detections as a truncated unsigned distance: the pixel's score, fading to 0 at trunc_m
+        det_obs = detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m)
+        det_new = (det[flat] * w_old + det_obs) / w_sum
+        det_new[sdf >= self.trunc_m] = 0.0             # carving: no detection survives in free space
+        det[flat] = det_new
+        weight[flat] = np.minimum(w_sum, self.max_weight)
+        return newly
+
+    def perceived_target_fraction(self, s: Settings) -> float:
+        """Detection voxels above the threshold, relative to a fully seen nominal target (for baselines)."""
+        return float(np.count_nonzero(self.detections > s.detection_threshold)) / s.nominal_target_voxels
+
+# ================================================================================================
+# Encoder (Sec. III-B.1, Fig. 2): the volume around the end-effector -> 71 values.
+# ================================================================================================
+
+# The 17 bins, seen from above in the end-effector's yaw frame (x forward, y to the left):
+# a 3 x 3 grid of crop/3 cells indexed (a, b) with a along x (0 back .. 2 front) and b along y
+# (0 right .. 2 left). The 8 outer cells are bins 0-7 in row-major (a, b) order, the middle cell is
+# split again into 3 x 3 cells (c, d), bins 8 + 3c + d. Bin 17 collects columns outside the crop.
+OUTER_BIN = np.array([0, 1, 2, 3, -1, 4, 5, 6, 7])
+
+
+def column_bins(u: np.ndarray, v: np.ndarray, crop_m: float) -> np.ndarray:
+    """Bin (0..16, or 17 outside the crop) of columns at (u, v) metres in the end-effector's yaw frame."""
+    cell = crop_m / 3
+    a = np.floor((u + crop_m / 2) / cell).astype(np.int64)
+    b = np.floor((v + crop_m / 2) / cell).astype(np.int64)
+    inside = (a >= 0) & (a < 3) & (b >= 0) & (b < 3)
+    outer = np.where(inside, a * 3 + b, 0)
+    c = np.clip(np.floor((u + cell / 2) / (cell / 3)), 0, 2).astype(np.int64)
+    d = np.clip(np.floor((v + cell / 2) / (cell / 3)), 0, 2).astype(np.int64)
+    bins = np.where(outer == 4, 8 + 3 * c + d, OUTER_BIN[outer])
+    return np.where(inside, bins, 17)
+
+
+def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, finger_z: float,
+                 crop_m: float = 1.2, detection_scale: float = 1.0) -> np.ndarray:
+    """The state of Fig. 2: 4 maps x 17 bins, the TSDF and detection sums, and the roll. (71,) float32.
+
+    The maps are TSDF above / below the fingertips, then detections above / below, each summed along z
+    and pooled into the 17 bins around the end-effector. The TSDF pair is normalised by its joint sum,
+    the detection pair by its own; the sums follow, scaled by the volume's voxel count and by
+    `detection_scale` (voxels of a fully seen target), then the roll.
+    """
+    nx, ny, nz = volume.shape
+    k = int(np.clip(round(finger_z / volume.voxel_m), 0, nz))
+    # Summing each column above and below the fingertips is one matrix product with a (nz, 2) mask.
+    layers = np.zeros((nz, 2), np.float32)
+    layers[k:, 0], layers[:k, 1] = 1.0, 1.0
+    maps = np.concatenate([(volume.tsdf.reshape(-1, nz) @ layers).T,
+                           (volume.detections.reshape(-1, nz) @ layers).T])   # (4, nx * ny)
+    # rotate column centres (not the volume) into the yaw frame: 10^4 points instead of 5 * 10^5 voxels
+    cx, cy = volume.column_xy[0] - ee_xyz[0], volume.column_xy[1] - ee_xyz[1]
+    cos, sin = np.cos(ee_yaw), np.sin(ee_yaw)
+    bins = column_bins(cos * cx + sin * cy, -sin * cx + cos * cy, crop_m)
+    index = (bins[None, :] + 18 * np.arange(4)[:, None]).reshape(-1)
+    pooled = np.bincount(index, weights=maps.reshape(-1), minlength=72).reshape(4, 18)[:, :17]
+    tsdf_sum, det_sum = pooled[:2].sum(), pooled[2:].sum()
+    pooled[:2] /= tsdf_sum if abs(tsdf_sum) > 1e-6 else 1.0
+    pooled[2:] /= det_sum if abs(det_sum) > 1e-6 else 1.0
+    sums = [tsdf_sum / volume.tsdf.size, det_sum / detection_scale]
+    return np.concatenate([pooled.reshape(-1), sums, [ee_roll]]).astype(np.float32)
+
+# ================================================================================================
+# Simulation (Sec. III-B.2-3, III-C): pybullet scenes, the floating gripper, the wrist camera, rewards.
+# ================================================================================================
+
+
+def rotation_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def rotation_x(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+# The gripper in the tool frame (origin between the fingertips, z along the approach axis): a palm
+# and two fingers, as (half extents, centre) boxes.
+GRIPPER_BOXES = (((0.045, 0.015, 0.01), (0.0, 0.0, -0.09)),
+                 ((0.006, 0.012, 0.04), (-0.032, 0.0, -0.04)), ((0.006, 0.012, 0.04), (0.032, 0.0, -0.04)))
+GRIPPER_CORNERS = np.array([[x, y, z] for x in (-0.045, 0.045) for y in (-0.015, 0.015) for z in (-0.1, 0.0)])
+FINGER_REACH_M = 0.038   # lateral reach of the fingers: how far a fingertip dips below the ee when rolled
+
+# Tool axes in the yaw frame at roll 0: x to the gripper's right, y backward, z down (the approach axis).
+R_YAW_TOOL = np.array([[0, -1, 0], [-1, 0, 0], [0, 0, -1.0]])
+
+
+def gripper_rotation(yaw: float, roll: float) -> np.ndarray:
+    """R_world_tool: yaw about world z, then roll about the yaw frame's forward axis."""
+    return rotation_z(yaw) @ rotation_x(roll) @ R_YAW_TOOL
+
+
+def yaw_roll_of(R_world_tool: np.ndarray) -> tuple[float, float]:
+    """Inverse of `gripper_rotation` (ignores any small pitch a push may cause)."""
+    M = R_world_tool @ R_YAW_TOOL.T
+    return float(np.arctan2(M[1, 0], M[0, 0])), float(np.arctan2(M[2, 1], M[2, 2]))
+
+
+def camera_pose(T_world_tool: np.ndarray, s: Settings) -> np.ndarray:
+    """T_world_camera: maps points in the wrist camera's frame to the world.
+
+    The camera frame is OpenCV's: x right, y down, z forward along the optical axis; depth is measured
+    along z, not along the ray. The tool frame already has those axes (x to the gripper's right, y
+    backward, z along the approach axis), so the camera is the tool frame moved camera_offset_m back
+    from the fingertips: it looks between the fingers, and the image's top is the gripper's front.
+    """
+    T = T_world_tool.copy()
+    T[:3, 3] = T_world_tool[:3, 3] - s.camera_offset_m * T_world_tool[:3, 2]
+    return T
+
+
+def intrinsics(s: Settings) -> np.ndarray:
+    """K, 3 x 3, square pixels; pixel (u, v) covers [u, u + 1) so its centre is u + 0.5."""
+    f = (s.image_height / 2) / np.tan(np.radians(s.fov_y_deg) / 2)
+    return np.array([[f, 0, s.image_width / 2], [0, f, s.image_height / 2], [0, 0, 1.0]])
+
+
+def render_rgbd(client: int, T_world_camera: np.ndarray, K: np.ndarray, width: int, height: int,
+                near_m: float, far_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """TinyRenderer RGB (H, W, 3) uint8 and depth (H, W) metres along z, 0 where nothing was hit."""
+    T_gl = T_world_camera @ np.diag([1.0, -1.0, -1.0, 1.0])   # OpenGL cameras look down -z, y up
+    view = np.linalg.inv(T_gl).T.reshape(-1)                  # pybullet wants column-major
+    fov_y = np.degrees(2 * np.arctan(height / 2 / K[1, 1]))
+    proj = pb.computeProjectionMatrixFOV(fov_y, width / height, near_m, far_m)
+    _, _, rgba, zbuf, _ = pb.getCameraImage(width, height, view, proj, renderer=pb.ER_TINY_RENDERER,
+                                            flags=pb.ER_NO_SEGMENTATION_MASK, shadow=0,
+                                            physicsClientId=client)
+    rgb = np.asarray(rgba, np.uint8).reshape(height, width, 4)[:, :, :3]
+    zbuf = np.asarray(zbuf, np.float32).reshape(height, width)
+    depth = far_m * near_m / (far_m - (far_m - near_m) * zbuf)
+    depth[zbuf >= 1.0] = 0.0
+    return np.ascontiguousarray(rgb), depth.astype(np.float32)
+
+
+def quat_of(R: np.ndarray) -> list:
+    """pybullet quaternion (x, y, z, w) of a rotation matrix."""
+    w = np.sqrt(max(1e-12, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
+    if w > 1e-3:
+        return [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w]
+    i = int(np.argmax(np.diag(R)))
+    j, k = (i + 1) % 3, (i + 2) % 3
+    q = np.zeros(4)
+    q[i] = np.sqrt(max(1e-12, 1 + R[i, i] - R[j, j] - R[k, k])) / 2
+    q[j] = (R[j, i] + R[i, j]) / (4 * q[i])
+    q[k] = (R[k, i] + R[i, k]) / (4 * q[i])
+    q[3] = (R[k, j] - R[j, k]) / (4 * q[i])
+    return list(q)
+
+
+# --- object meshes: triangle lists used for rendering custom shapes and for ground-truth points ----
+
+def box_mesh(half) -> tuple[np.ndarray, np.ndarray]:
+    hx, hy, hz = half
+    v = np.array([[x, y, z] for x in (-hx, hx) for y in (-hy, hy) for z in (-hz, hz)])
+    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return v, f
+
+
+def prism_mesh(side: float, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """Triangular prism lying on a rectangular face, centred at its bounding box centre."""
+    h = side * np.sqrt(3) / 2
+    tri = np.array([[-side / 2, 0.0], [side / 2, 0.0], [0.0, h]]) - [0, h / 2]
+    v = np.array([[x, -length / 2, z] for x, z in tri] + [[x, length / 2, z] for x, z in tri])
+    f = np.array([[0, 1, 2], [3, 5, 4], [0, 3, 4], [0, 4, 1], [1, 4, 5], [1, 5, 2], [2, 5, 3], [2, 3, 0]])
+    return v, f
+
+
+def cylinder_mesh(radius: float, height: float, segments: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    a = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], 1)
+    v = np.concatenate([np.c_[ring, np.full(segments, -height / 2)], np.c_[ring, np.full(segments, height / 2)],
+                        [[0, 0, -height / 2], [0, 0, height / 2]]])
+    i = np.arange(segments)
+    j = (i + 1) % segments
+    f = np.concatenate([np.stack([i, j, segments + j], 1), np.stack([i, segments + j, segments + i], 1),
+                        np.stack([np.full(segments, 2 * segments), j, i], 1),
+                        np.stack([np.full(segments, 2 * segments + 1), segments + i, segments + j], 1)])
+    return v, f
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) points uniformly on a triangle mesh's surface (area-weighted triangles, uniform barycentrics)."""
+    a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+    area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    tri = rng.choice(len(faces), n, p=area / area.sum())
+    r1, r2 = np.sqrt(rng.random((n, 1))), rng.random((n, 1))
+    return (1 - r1) * a[tri] + r1 * (1 - r2) * b[tri] + r1 * r2 * c[tri]
+
+
+@functools.lru_cache(maxsize=None)
+def urdf_mesh(urdf_path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Visual mesh of a one-link URDF in its link frame (scale and origin applied), parsed from the OBJ."""
+    text = Path(urdf_path).read_text()
+    visual = text[text.index("<visual"):]
+    mesh = re.search(r'<mesh\s+filename="([^"]+)"(?:\s+scale="([^"]+)")?', visual)
+    origin = re.search(r'<origin[^>]*xyz="([^"]+)"', visual[:visual.index("<geometry")])
+    scale = np.array([float(x) for x in mesh.group(2).split()]) if mesh.group(2) else np.ones(3)
+    offset = np.array([float(x) for x in origin.group(1).split()]) if origin else np.zeros(3)
+    vertices, faces = [], []
+    for line in (Path(urdf_path).parent / mesh.group(1)).read_text().splitlines():
+        if line.startswith("v "):
+            vertices.append([float(x) for x in line.split()[1:4]])
+        elif line.startswith("f "):
+            idx = [int(tok.split("/")[0]) - 1 for tok in line.split()[1:]]
+            faces += [[idx[0], idx[i], idx[i + 1]] for i in range(1, len(idx) - 1)]   # fan triangulation
+    return np.array(vertices) * scale + offset, np.array(faces)
+
+
+# pybullet_data's household-like meshes with the global scaling that brings each near 5-8 cm
+OBJECT_MODELS = (("duck_vhacd.urdf", 0.6), ("teddy_vhacd.urdf", 0.6), ("objects/mug.urdf", 0.5),
+                 ("lego/lego.urdf", 1.8), ("jenga/jenga.urdf", 0.5), ("soccerball.urdf", 0.055))
+RANDOM_SHAPES = 1000          # pybullet_data/random_urdfs/000 .. 999, the paper's footnote set
+RANDOM_SHAPE_SCALE = 0.5      # about 5-6 cm across
+
+
+@dataclass
+class SceneObject:
+    body: int
+    vertices: np.ndarray   # (V, 3) mesh in the body's frame (pybullet's base = centre-of-mass frame)
+    faces: np.ndarray      # (F, 3)
+    radius_m: float        # of the footprint, for placing objects apart
+    half_height_m: float   # lowest vertex below the body origin when upright
+
+
+def make_object(client: int, scene: str, rng: np.random.Generator, rgba) -> SceneObject:
+    """One object of a scene kind, created at the origin; the caller places it."""
+    size = Settings.object_size_m
+    kind = "cube" if scene == "cubes" else None
+    if scene in ("fixed-primitives", "variable-primitives"):
+        kind = ("cube", "cuboid", "cylinder", "prism")[rng.integers(4)]
+    if kind is not None:
+        scale = rng.uniform(0.5, 2.0) if scene == "variable-primitives" else 1.0
+        h = size * scale / 2
+        if kind == "cube":
+            (v, f), col = box_mesh((h, h, h)), dict(shapeType=pb.GEOM_BOX, halfExtents=[h, h, h])
+            vis = dict(col)
+        elif kind == "cuboid":
+            half = [1.5 * h, 0.75 * h, 0.75 * h]
+            (v, f), col = box_mesh(half), dict(shapeType=pb.GEOM_BOX, halfExtents=half)
+            vis = dict(col)
+        elif kind == "cylinder":
+            (v, f) = cylinder_mesh(h, 2 * h)
+            col = dict(shapeType=pb.GEOM_CYLINDER, radius=h, height=2 * h)
+            vis = dict(shapeType=pb.GEOM_CYLINDER, radius=h, length=2 * h)
+        else:
+            v, f = prism_mesh(2.2 * h, 2 * h)
+            col = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist())
+            vis = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist(), indices=f.reshape(-1).tolist())
+        body = pb.createMultiBody(0.1, pb.createCollisionShape(**col, physicsClientId=client),
+                                  pb.createVisualShape(**vis, rgbaColor=rgba, physicsClientId=client),
+                                  useMaximalCoordinates=True, physicsClientId=client)
+    else:
+        data = pybullet_data.getDataPath()
+        if scene == "random-shapes":
+            i = int(rng.integers(RANDOM_SHAPES))
+            path, scale = os.path.join(data, "random_urdfs", f"{i:03d}", f"{i:03d}.urdf"), RANDOM_SHAPE_SCALE
+        else:
+            name, scale = OBJECT_MODELS[rng.integers(len(OBJECT_MODELS))]
+            path = os.path.join(data, name)
+        body = pb.loadURDF(path, globalScaling=scale, useMaximalCoordinates=True, physicsClientId=client)
+        pb.changeVisualShape(body, -1, rgbaColor=rgba, textureUniqueId=-1, physicsClientId=client)
+        v, f = urdf_mesh(path)
+        # pybullet's base frame is the inertial frame: move the link-frame mesh into it
+        _, _, _, inertial_pos, inertial_orn, *_ = pb.getDynamicsInfo(body, -1, physicsClientId=client)
+        R = np.array(pb.getMatrixFromQuaternion(inertial_orn)).reshape(3, 3)
+        v = (v * scale - np.array(inertial_pos)) @ R
+    # Objects may sleep: a resting pile then costs nothing per physics step until something touches it.
+    pb.changeDynamics(body, -1, lateralFriction=0.6, activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING,
+                      physicsClientId=client)
+    return SceneObject(body, v, f, float(np.linalg.norm(v[:, :2], axis=1).max()), float(-v[:, 2].min()))
+
+
+class ObjectFindingEnv(gym.Env):
+    """The object finding task as a Gymnasium environment (Sec. III-B, III-C).
+
+    Action: Box(-1, 1, (6,)): dx, dy, dz (times max_step_m) in the end-effector's yaw frame, roll and yaw
+    (times max_turn_rad), and terminate when the sixth value is above 0. Observation: the 71 values of
+    `encode_state`. `info` holds target_present, target_seen_fraction, target_observed,
+    explored_fraction, and success on the last step.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
+
+    def __init__(self, task: str = "ap", scene: str = "cubes", seed: int | None = None,
+                 render_mode: str | None = None):
+        if task not in TASKS:
+            raise ValueError(f"unknown task {task!r}; choose from {', '.join(TASKS)}")
+        if scene not in SCENES:
+            raise ValueError(f"unknown scene {scene!r}; choose from {', '.join(SCENES)}")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"unsupported render_mode {render_mode!r}")
+        self.task, self.scene, self.render_mode = task, scene, render_mode
+        self.s = s = TASKS[task]
+        self._seed = seed
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (71,), np.float32)
+        self.volume = TSDFVolume(s.workspace_m, s.volume_height_m, s.voxels_per_side, s.trunc_m, s.max_weight)
+        self.K = intrinsics(s)
+        self.client = pb.connect(pb.DIRECT)
+        self.timings = dict.fromkeys(("physics", "render", "detect", "integrate", "encode"), 0.0)
+        self.last_views: dict = {}   # the latest rgb, depth and detections, for demos and tests
+
+    # --- scene construction -----------------------------------------------------------------
+
+    def _build_static(self) -> None:
+        """Floor, four walls and the gripper on its constraint."""
+        s, c = self.s, self.client
+        half = s.workspace_m / 2
+        thick = 0.02
+
+        def static_box(half_extents, pos, rgba):
+            return pb.createMultiBody(0, pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half_extents, physicsClientId=c),
+                                      pb.createVisualShape(pb.GEOM_BOX, halfExtents=half_extents, rgbaColor=rgba, physicsClientId=c),
+                                      pos, physicsClientId=c)
+
+        self.floor = static_box([half + 2 * thick] * 2 + [thick], [0, 0, -thick], (0.78, 0.76, 0.72, 1))
+        wall_rgba = (0.55, 0.6, 0.68, 1)
+        self.walls = [static_box([thick, half + 2 * thick, s.wall_height_m / 2], [sx * (half + thick), 0, s.wall_height_m / 2], wall_rgba)
+                      for sx in (-1, 1)]
+        self.walls += [static_box([half, thick, s.wall_height_m / 2], [0, sy * (half + thick), s.wall_height_m / 2], wall_rgba)
+                       for sy in (-1, 1)]
+        # The gripper (GRIPPER_BOXES). The wrist camera must not see it, so the outside view draws a ghost.
+        boxes = GRIPPER_BOXES
+        col = pb.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=[b[0] for b in boxes],
+                                           collisionFramePositions=[b[1] for b in boxes], physicsClientId=c)
+        # TinyRenderer draws a body without a visual shape from its collision shapes, so the gripper
+        # gets a tiny sphere behind the camera as its only visual
+        speck = pb.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=[0, 0, -0.09],
+                                     rgbaColor=(0, 0, 0, 0), physicsClientId=c)
+        self.gripper = pb.createMultiBody(0.5, col, speck, [0, 0, 1], physicsClientId=c)
+        pb.changeDynamics(self.gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=c)
+        vis = pb.createVisualShapeArray([pb.GEOM_BOX] * 3, halfExtents=[b[0] for b in boxes],
+                                        visualFramePositions=[b[1] for b in boxes],
+                                        rgbaColors=[(0.25, 0.25, 0.28, 1)] * 3, physicsClientId=c)
+        self.ghost = pb.createMultiBody(0, -1, vis, [0, 0, -5], physicsClientId=c)
+        self.constraint = pb.createConstraint(self.gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0],
+                                              [0, 0, 1], physicsClientId=c)
+
+    def _object_count(self, rng) -> tuple[int, bool]:
+        """Number of objects and whether they are heaped into piles."""
+        s = self.s
+        piles = s.piles > 0 and rng.random() >= s.exploration_ratio
+        if piles and self.scene in ("fixed-primitives", "variable-primitives", "random-shapes"):
+            lo, hi = s.objects_per_pile_dense
+            return int(rng.integers(lo * s.piles, hi * s.piles + 1)), True
+        return int(rng.integers(s.min_objects, s.max_objects + 1)), piles
+
+    def _scatter_positions(self, objects, rng) -> list:
+        """Non-overlapping resting positions by rejection; an object with no room is dropped on top."""
+        half = self.s.workspace_m / 2
+        placed, poses = [], []
+        for obj in objects:
+            r = obj.radius_m
+            for _ in range(50):
+                xy = rng.uniform(-half + r, half - r, 2)
+                if all(np.linalg.norm(xy - q) > r + rq + 0.005 for q, rq in placed):
+                    z = obj.half_height_m + 0.002
+                    break
+            else:
+                z = 0.15 + 0.05 * len(poses) % 0.2
+            placed.append((xy, r))
+            poses.append((np.r_[xy, z], rng.uniform(-np.pi, np.pi)))
+        return poses
+
+    def _pile_positions(self, objects, rng) -> list:
+        """Pyramids of drop spots over `piles` random centres, filled from the bottom centre outward.
+
+        The first object (the target, when there is one) gets the bottom centre spot of the first
+        pile, so the rest of the pile falls around and onto it.
+        """
+        s = self.s
+        half = s.workspace_m / 2
+        centres = []
+        while len(centres) < s.piles:
+            c = rng.uniform(-half + 0.12, half - 0.12, 2)
+            if all(np.linalg.norm(c - q) > 0.2 for q in centres) or rng.random() < 0.02:
+                centres.append(c)
+        share = np.array_split(np.arange(len(objects)), s.piles)
+        poses = [None] * len(objects)
+        for centre, members in zip(centres, share):
+            spacing = 2 * max(objects[i].radius_m for i in members) * 0.8
+            step_z = 2 * max(objects[i].half_height_m for i in members) + 0.005
+            spots = [(ring + 0.45 * layer + 0.01 * rng.random(), (x, y, layer))
+                     for layer in range(7) for x in np.arange(7 - layer) - (6 - layer) / 2
+                     for y in np.arange(7 - layer) - (6 - layer) / 2 for ring in [max(abs(x), abs(y))]]
+            spots.sort(key=lambda t: t[0])
+            for i, (_, (x, y, layer)) in zip(members, spots):
+                jitter = rng.normal(0, 0.1 * spacing, 2)
+                xyz = np.r_[centre + spacing * np.array([x, y]) + jitter, objects[i].half_height_m + 0.002 + layer * step_z]
+                poses[i] = (xyz, rng.uniform(-np.pi, np.pi))
+        return poses
+
+    def _settle(self, max_steps: int) -> bool:
+        """Step physics until every object is at rest (checked every 8 steps), then put them to sleep.
+
+        pybullet only lets bodies sleep after 2 s at rest; sending them to sleep at once keeps later
+        physics steps cheap. Returns False if objects were still moving after max_steps.
+        """
+        for step in range(max_steps):
+            pb.stepSimulation(physicsClientId=self.client)
+            if step % 8 == 7 and self._objects_at_rest():
+                for o in self.objects:
+                    pb.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP, physicsClientId=self.client)
+                return True
+        return False
+
+    def _objects_at_rest(self) -> bool:
+        speed = max((np.linalg.norm(pb.getBaseVelocity(o.body, physicsClientId=self.client)[0])
+                     for o in self.objects), default=0.0)
+        return speed < self.s.settle_speed
+
+    def _build_scene(self, rng) -> None:
+        s, c = self.s, self.client
+        pb.resetSimulation(physicsClientId=c)
+        pb.setGravity(0, 0, -9.81, physicsClientId=c)
+        pb.setPhysicsEngineParameter(fixedTimeStep=1.0 / s.physics_hz, numSolverIterations=s.solver_iterations,
+                                     physicsClientId=c)
+        self._build_static()
+        count, piles = self._object_count(rng)
+        self.target_present = bool(rng.random() >= s.no_target_prob)
+        self.objects = []
+        for i in range(count):
+            rgba = TARGET_RGBA if (i == 0 and self.target_present) else OTHER_RGBA[rng.integers(len(OTHER_RGBA))]
+            self.objects.append(make_object(c, self.scene, rng, rgba))
+        poses = self._pile_positions(self.objects, rng) if piles else self._scatter_positions(self.objects, rng)
+        for obj, (xyz, yaw) in zip(self.objects, poses):
+            pb.resetBasePositionAndOrientation(obj.body, xyz, pb.getQuaternionFromEuler([0, 0, yaw]), physicsClientId=c)
+        self._settle(480 if piles else 240)
+        self.piles, self.disturbed = piles, False
+        if self.target_present:
+            target = self.objects[0]
+            self.target_points = sample_surface(target.vertices, target.faces, s.surface_points, rng)
+        else:
+            self.target_points = np.zeros((0, 3))
+        self.target_seen = np.zeros(len(self.target_points), bool)
+
+    def _place_gripper(self, rng) -> None:
+        """Random x, y, height and yaw, roll 0; resampled while it would overlap an object."""
+        s, c = self.s, self.client
+        half = s.workspace_m / 2 - 0.05
+        for attempt in range(20):
+            xyz = np.r_[rng.uniform(-half, half, 2), rng.uniform(0.1, s.ceiling_m)]
+            if attempt == 19:
+                xyz[2] = s.ceiling_m
+            yaw = rng.uniform(-np.pi, np.pi)
+            self._teleport(xyz, gripper_rotation(yaw, 0.0))
+            pb.performCollisionDetection(physicsClientId=c)
+            if not pb.getContactPoints(self.gripper, physicsClientId=c):
+                break
+
+    # --- the gripper ----------------------------------------------------------------------------
+
+    def gripper_pose(self) -> np.ndarray:
+        """T_world_tool (4 x 4) of the gripper body as simulated."""
+        pos, orn = pb.getBasePositionAndOrientation(self.gripper, physicsClientId=self.client)
+        T = np.eye(4)
+        T[:3, :3] = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        T[:3, 3] = pos
+        return T
+
+    def _teleport(self, xyz, R) -> None:
+        q = quat_of(R)
+        pb.resetBasePositionAndOrientation(self.gripper, xyz, q, physicsClientId=self.client)
+        pb.resetBaseVelocity(self.gripper, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
+        pb.changeConstraint(self.constraint, xyz, q, maxForce=self.s.gripper_force_n, physicsClientId=self.client)
+
+    def _move_gripper(self, action: np.ndarray) -> None:
+        """Drive the gripper by one action's displacement: teleport through free space, simulate contact.
+
+        Speed trick: when the box swept by the gripper touches no other body's bounding box and nothing
+        is still moving, the force-bounded constraint would reach the goal unhindered, so the gripper is
+        placed there and no physics step is spent. Otherwise the constraint pulls it there with bounded
+        force while physics runs, until the pose is reached or the gripper stalls, then objects settle.
+        """
+        s, c = self.s, self.client
+        T = self.gripper_pose()
+        yaw, roll = yaw_roll_of(T[:3, :3])
+        roll = float(np.clip(roll + action[3] * s.max_turn_rad, -s.max_roll_rad, s.max_roll_rad))
+        yaw = float(yaw + action[4] * s.max_turn_rad)
+        R_goal = gripper_rotation(yaw, roll)
+        half = s.workspace_m / 2
+        floor_z = 0.005 + FINGER_REACH_M * abs(np.sin(roll))     # keep the fingertips above the floor
+        goal = np.clip(T[:3, 3] + rotation_z(yaw) @ (action[:3] * s.max_step_m),
+                       [-half, -half, floor_z], [half, half, s.ceiling_m])
+        lo, hi = pb.getAABB(self.gripper, physicsClientId=c)
+        corners = GRIPPER_CORNERS @ R_goal.T + goal
+        lo = np.minimum(lo, corners.min(0)) - 0.005
+        hi = np.maximum(hi, corners.max(0)) + 0.005
+        near = pb.getOverlappingObjects(lo.tolist(), hi.tolist(), physicsClientId=c) or []
+        if not self.disturbed and all(body in (self.gripper, self.ghost) for body, _ in near):
+            self._teleport(goal, R_goal)
+            return
+        q_goal = quat_of(R_goal)
+        pb.changeConstraint(self.constraint, goal.tolist(), q_goal, maxForce=s.gripper_force_n, physicsClientId=c)
+        last = T[:3, 3]
+        for substep in range(1, s.max_substeps + 1):
+            pb.stepSimulation(physicsClientId=c)
+            if substep % 4 == 0:
+                pos, orn = pb.getBasePositionAndOrientation(self.gripper, physicsClientId=c)
+                pos = np.array(pos)
+                angle = 2 * np.arccos(min(1.0, abs(float(np.dot(orn, q_goal)))))
+                reached = np.linalg.norm(pos - goal) < 0.003 and angle < 0.02
+                stalled = np.linalg.norm(pos - last) < 0.0005        # blocked by a wall or a heavy pile
+                if reached or stalled:
+                    break
+                last = pos
+        self.disturbed = not self._settle(s.settle_substeps)
+
+    # --- perception of one view -----------------------------------------------------------------
+
+    def _update_target_seen(self, T_world_camera: np.ndarray, depth_m: np.ndarray) -> None:
+        """Ground truth: surface points that project into the image, in front, and unoccluded."""
+        if not self.target_present:
+            return
+        pos, orn = pb.getBasePositionAndOrientation(self.objects[0].body, physicsClientId=self.client)
+        R = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        world = self.target_points @ R.T + pos
+        cam = (world - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]     # R^T (p - t), row-wise
+        z = cam[:, 2]
+        safe = np.where(z > 1e-6, z, 1.0)
+        u = np.floor(self.K[0, 0] * cam[:, 0] / safe + self.K[0, 2]).astype(int)
+        v = np.floor(self.K[1, 1] * cam[:, 1] / safe + self.K[1, 2]).astype(int)
+        H, W = depth_m.shape
+        inside = (z > self.s.near_m) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        rendered = depth_m[np.clip(v, 0, H - 1), np.clip(u, 0, W - 1)]
+        self.target_seen |= inside & (rendered > 0) & (np.abs(rendered - z) < self.s.seen_depth_tol_m)
+
+    def _observe(self) -> int:
+        """Render the wrist camera, detect, add noise, integrate; returns newly observed voxels."""
+        s = self.s
+        t0 = time.perf_counter()
+        T_world_camera = camera_pose(self.gripper_pose(), s)
+        rgb, depth = render_rgbd(self.client, T_world_camera, self.K, s.image_width, s.image_height, s.near_m, s.far_m)
+        t1 = time.perf_counter()
+        detections = add_detector_noise(detect_target(rgb), self.np_random, s)
+        t2 = time.perf_counter()
+        newly = self.volume.integrate(depth, detections, self.K, T_world_camera)
+        self._update_target_seen(T_world_camera, depth)
+        t3 = time.perf_counter()
+        self.timings.update(render=1e3 * (t1 - t0), detect=1e3 * (t2 - t1), integrate=1e3 * (t3 - t2))
+        self.last_views = dict(rgb=rgb, depth=depth, detections=detections, T_world_camera=T_world_camera)
+        return newly
+
+    def _state(self) -> np.ndarray:
+        t0 = time.perf_counter()
+        T = self.gripper_pose()
+        yaw, roll = yaw_roll_of(T[:3, :3])
+        state = encode_state(self.volume, T[:3, 3], yaw, roll, T[2, 3], self.s.crop_m, self.s.nominal_target_voxels)
+        self.timings["encode"] = 1e3 * (time.perf_counter() - t0)
+        return state
+
+    def _info(self) -> dict:
+        seen = float(self.target_seen.mean()) if self.target_present else 0.0
+        return dict(target_present=self.target_present, target_seen_fraction=seen,
+                    target_observed=seen >= self.s.seen_threshold,
+                    explored_fraction=self.volume.explored_fraction(), steps=self.steps)
+
+    # --- the Gymnasium API -----------------------------------------------------------------------
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is None and self._seed is not None:
+            seed, self._seed = self._seed, None
+        super().reset(seed=seed)
+        rng = self.np_random
+        self._build_scene(rng)
+        self._place_gripper(rng)
+        self.volume.reset()
+        self.steps = 0
+        self._observe()
+        return self._state(), self._info()
+
+    def step(self, action):
+        s = self.s
+        action = np.clip(np.asarray(action, np.float64).reshape(6), -1.0, 1.0)
+        self.steps += 1
+        reward = -s.time_penalty
+        if action[5] > 0:   # terminate: claim the target was found, or that there is none
+            info = self._info()
+            success = info["target_observed"] if self.target_present else True
+            reward += s.detection_reward if success else -s.detection_reward
+            info.update(success=success, terminated_by_agent=True)
+            self.timings.update(physics=0.0, render=0.0, detect=0.0, integrate=0.0, encode=0.0)
+            return self._state(), reward, True, False, info
+        t0 = time.perf_counter()
+        self._move_gripper(action)
+        self.timings["physics"] = 1e3 * (time.perf_counter() - t0)
+        newly = self._observe()
+        explored_share = newly / self.volume.tsdf.size
+        reward += s.time_penalty * min(1.0, explored_share / s.exploration_normaliser)
+        state, info = self._state(), self._info()
+        # The horizon is part of the task (a finite-horizon MDP with a failure penalty), so reaching it
+        # terminates the episode rather than truncating it.
+        if self.steps >= s.horizon:
+            reward -= s.detection_reward
+            info.update(success=False, terminated_by_agent=False)
+            return state, reward, True, False, info
+        return state, reward, False, False, info
+
+    def render(self):
+        if self.render_mode == "rgb_array":
+            return self.outside_view()
+        return None
+
+    def outside_view(self, width: int = 320, height: int = 240) -> np.ndarray:
+        """The scene from a fixed oblique camera, with the gripper's ghost drawn in, (H, W, 3) uint8."""
+        s, c = self.s, self.client
+        T_tool = self.gripper_pose()
+        pb.resetBasePositionAndOrientation(self.ghost, T_tool[:3, 3], quat_of(T_tool[:3, :3]), physicsClientId=c)
+        eye = np.array([0.0, -1.25, 1.0]) * s.workspace_m
+        forward = -eye / np.linalg.norm(eye)
+        right = np.array([1.0, 0, 0])
+        down = np.cross(forward, right)
+        T = np.eye(4)
+        T[:3, :3] = np.stack([right, down, forward], 1)
+        T[:3, 3] = eye
+        K = np.array([[height * 1.1, 0, width / 2], [0, height * 1.1, height / 2], [0, 0, 1]])
+        rgb, _ = render_rgbd(c, T, K, width, height, 0.05, 4 * s.workspace_m)
+        pb.resetBasePositionAndOrientation(self.ghost, [0, 0, -5], [0, 0, 0, 1], physicsClientId=c)
+        return rgb
+
+    def close(self):
+        if getattr(self, "client", None) is not None and pb.isConnected(self.client):
+            pb.disconnect(self.client)
+        self.client = None
