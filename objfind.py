@@ -172,15 +172,18 @@ class TSDFVolume:
         self.column_xy = [c.reshape(-1) for c in np.meshgrid(self.axes[0], self.axes[1], indexing="ij")]
         self.flat_index = np.arange(nx * ny * nz, dtype=np.int32).reshape(self.shape)
 
+        self.observed_count = 0   # running count of voxels with weight > 0, kept by integrate()
+
     def reset(self) -> None:
         self.tsdf.fill(0.0), self.weight.fill(0.0), self.detections.fill(0.0)
+        self.observed_count = 0
 
     def observed(self) -> np.ndarray:
         """(nx, ny, nz) bool: voxels seen at least once (weight above zero)."""
         return self.weight > 0
 
     def explored_fraction(self) -> float:
-        return float(np.count_nonzero(self.weight)) / self.weight.size
+        return self.observed_count / self.weight.size
 
     def frustum_box(self, depth_m, K, T_world_camera):
         """Index ranges of the axis-aligned box that bounds the camera frustum up to the farthest depth."""
@@ -233,8 +236,9 @@ class TSDFVolume:
         tsdf, weight, det = (a.reshape(-1) for a in (self.tsdf, self.weight, self.detections))
         w_old = weight[flat]
         newly = int(np.count_nonzero(w_old == 0))
+        self.observed_count += newly
         w_sum = w_old + 1.0
-        tsdf[flat] = (tsdf[flat] * w_old + np.minimum(1.0, sdf / self.trunc_m)) / w_sum
+        tsdf[flat] = (tsdf[flat] * w_old + np.minimum(1.0, sdf * (1.0 / self.trunc_m))) / w_sum
         # detections as a truncated unsigned distance: the pixel's score, fading to 0 at trunc_m
         det_obs = detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m)
         det_new = (det[flat] * w_old + det_obs) / w_sum
@@ -419,13 +423,21 @@ def cylinder_mesh(radius: float, height: float, segments: int = 16) -> tuple[np.
     return v, f
 
 
-def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """(n, 3) points uniformly on a triangle mesh's surface (area-weighted triangles, uniform barycentrics)."""
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator):
+    """(n, 3) points uniformly on a triangle mesh's surface and their (n, 3) outward unit normals.
+
+    Triangles are drawn by area, points by uniform barycentrics. Normals are turned to point away from
+    the mesh's centroid, since OBJ files do not all wind their faces the same way.
+    """
     a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
-    area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    cross = np.cross(b - a, c - a)
+    area = np.linalg.norm(cross, axis=1)
     tri = rng.choice(len(faces), n, p=area / area.sum())
     r1, r2 = np.sqrt(rng.random((n, 1))), rng.random((n, 1))
-    return (1 - r1) * a[tri] + r1 * (1 - r2) * b[tri] + r1 * r2 * c[tri]
+    points = (1 - r1) * a[tri] + r1 * (1 - r2) * b[tri] + r1 * r2 * c[tri]
+    normals = cross[tri] / area[tri, None]
+    outward = np.sign(np.sum(normals * ((a + b + c)[tri] / 3 - vertices.mean(0)), axis=1))
+    return points, normals * np.where(outward == 0, 1.0, outward)[:, None]
 
 
 @functools.lru_cache(maxsize=None)
@@ -670,9 +682,9 @@ class ObjectFindingEnv(gym.Env):
         self.piles, self.disturbed = piles, False
         if self.target_present:
             target = self.objects[0]
-            self.target_points = sample_surface(target.vertices, target.faces, s.surface_points, rng)
+            self.target_points, self.target_normals = sample_surface(target.vertices, target.faces, s.surface_points, rng)
         else:
-            self.target_points = np.zeros((0, 3))
+            self.target_points = self.target_normals = np.zeros((0, 3))
         self.target_seen = np.zeros(len(self.target_points), bool)
 
     def _place_gripper(self, rng) -> None:
@@ -750,12 +762,13 @@ class ObjectFindingEnv(gym.Env):
     # --- perception of one view -----------------------------------------------------------------
 
     def _update_target_seen(self, T_world_camera: np.ndarray, depth_m: np.ndarray) -> None:
-        """Ground truth: surface points that project into the image, in front, and unoccluded."""
+        """Ground truth: surface points that face the camera, project into the image, and are unoccluded."""
         if not self.target_present:
             return
         pos, orn = pb.getBasePositionAndOrientation(self.objects[0].body, physicsClientId=self.client)
         R = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
         world = self.target_points @ R.T + pos
+        facing = np.sum((self.target_normals @ R.T) * (T_world_camera[:3, 3] - world), axis=1) > 0
         cam = (world - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]     # R^T (p - t), row-wise
         z = cam[:, 2]
         safe = np.where(z > 1e-6, z, 1.0)
@@ -764,7 +777,7 @@ class ObjectFindingEnv(gym.Env):
         H, W = depth_m.shape
         inside = (z > self.s.near_m) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         rendered = depth_m[np.clip(v, 0, H - 1), np.clip(u, 0, W - 1)]
-        self.target_seen |= inside & (rendered > 0) & (np.abs(rendered - z) < self.s.seen_depth_tol_m)
+        self.target_seen |= facing & inside & (rendered > 0) & (np.abs(rendered - z) < self.s.seen_depth_tol_m)
 
     def _observe(self) -> int:
         """Render the wrist camera, detect, add noise, integrate; returns newly observed voxels."""
@@ -863,3 +876,167 @@ class ObjectFindingEnv(gym.Env):
         if getattr(self, "client", None) is not None and pb.isConnected(self.client):
             pb.disconnect(self.client)
         self.client = None
+
+# ================================================================================================
+# Agents. An agent has reset(env) and act(obs, env) -> action in the env's Box(-1, 1, (6,)).
+# ================================================================================================
+
+
+class RandomAgent:
+    """Uniform random displacements; terminates with a small probability per step."""
+
+    terminate_prob = 0.02
+
+    def __init__(self, seed: int | None = None):
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self, env) -> None:
+        pass
+
+    def act(self, obs, env) -> np.ndarray:
+        action = self.rng.uniform(-1, 1, 6).astype(np.float32)
+        action[5] = 1.0 if self.rng.random() < self.terminate_prob else -1.0
+        return action
+
+
+class ScriptedAgent:
+    """A hand-written searcher: rise to the ceiling, tilt, then turn on the spot while drifting to the
+    workspace centre; terminate once the volume holds a perceived target or after one full turn."""
+
+    tilt_rad = 0.6
+
+    def reset(self, env) -> None:
+        self.turned_rad = 0.0
+
+    def act(self, obs, env) -> np.ndarray:
+        s = env.s
+        T = env.gripper_pose()
+        yaw, roll = yaw_roll_of(T[:3, :3])
+        action = np.zeros(6, np.float32)
+        action[5] = -1.0
+        if env.volume.perceived_target_fraction(s) >= s.seen_threshold or self.turned_rad >= 2 * np.pi:
+            action[5] = 1.0
+            return action
+        to_centre = rotation_z(yaw).T @ np.r_[-T[0, 3], -T[1, 3], s.ceiling_m - T[2, 3]]
+        action[:3] = np.clip(to_centre / s.max_step_m, -1, 1)
+        action[3] = np.clip((self.tilt_rad - roll) / s.max_turn_rad, -1, 1)
+        if T[2, 3] > s.ceiling_m - s.max_step_m:      # high enough: start turning
+            action[4] = 1.0
+            self.turned_rad += s.max_turn_rad
+        return action
+
+
+AGENTS = {"random": RandomAgent, "scripted": ScriptedAgent}
+
+# ================================================================================================
+# Evaluation helpers: one episode, and the pictures of it (outside, wrist camera, volume, state).
+# ================================================================================================
+
+PANEL = (320, 240)   # width, height of one picture in the demo
+
+
+def label(image: np.ndarray, text: str) -> np.ndarray:
+    cv2.putText(image, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(image, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+    return image
+
+
+def wrist_panel(rgb: np.ndarray, detections: np.ndarray) -> np.ndarray:
+    """The wrist camera image, upscaled, with noisy detections above 0.5 painted green."""
+    image = cv2.resize(rgb, PANEL, interpolation=cv2.INTER_NEAREST)
+    mask = cv2.resize((detections > 0.5).astype(np.uint8), PANEL, interpolation=cv2.INTER_NEAREST) > 0
+    image[mask] = (0.4 * image[mask] + 0.6 * np.array([60, 255, 60])).astype(np.uint8)
+    return label(image, "wrist camera + detections (green)")
+
+
+def volume_panel(volume: TSDFVolume, T_world_tool: np.ndarray) -> np.ndarray:
+    """Top view of the volume: unobserved dark, observed light, occupied shaded by height, detected red."""
+    observed = volume.weight.max(axis=2) > 0                               # (nx, ny)
+    surface = (volume.weight > 0) & (np.abs(volume.tsdf) < 0.5)
+    surface[:, :, :2] = False                                              # the floor is not an object
+    height = np.where(surface.any(axis=2), surface.shape[2] - np.argmax(surface[:, :, ::-1], axis=2), 0)
+    detected = (volume.detections > 0.5).any(axis=2)
+    top = np.full(observed.shape + (3,), 45, np.uint8)
+    top[observed] = (215, 215, 210)
+    occupied = height > 0
+    shade = (170 - 120 * height / surface.shape[2]).astype(np.uint8)
+    top[occupied] = np.stack([shade, shade, shade + 20], -1)[occupied]
+    top[detected] = (230, 30, 30)
+    # arrays are [x, y]; draw x to the right and y up
+    image = np.rot90(top).copy()
+    side = PANEL[1]
+    image = cv2.resize(image, (side, side), interpolation=cv2.INTER_NEAREST)
+    n = volume.shape[0]
+    to_px = lambda xy: (int((xy[0] - volume.origin[0]) / volume.voxel_m * side / n),
+                        int(side - (xy[1] - volume.origin[1]) / volume.voxel_m * side / n))
+    ee = T_world_tool[:3, 3]
+    yaw, _ = yaw_roll_of(T_world_tool[:3, :3])
+    tip = ee[:2] + 0.06 * np.array([np.cos(yaw), np.sin(yaw)])
+    cv2.arrowedLine(image, to_px(ee), to_px(tip), (20, 120, 255), 2, tipLength=0.4)
+    panel = np.full((PANEL[1], PANEL[0], 3), 255, np.uint8)
+    panel[:, (PANEL[0] - side) // 2:(PANEL[0] - side) // 2 + side] = image
+    return label(panel, "volume: observed / occupied / detected")
+
+
+def bins_panel(state: np.ndarray) -> np.ndarray:
+    """The 4 x 17 bins of the state as four maps, the gripper's front up and its left on the left."""
+    panel = np.full((PANEL[1], PANEL[0], 3), 255, np.uint8)
+    names = ("TSDF above", "TSDF below", "detections above", "detections below")
+    size = 96
+    for m, name in enumerate(names):
+        values = state[17 * m:17 * (m + 1)]
+        x0, y0 = 12 + (m % 2) * 156, 30 + (m // 2) * 106
+        scale = max(float(np.abs(values).max()), 1e-6)
+
+        def cell(x, y, w, value):
+            g = int(255 - 230 * min(1.0, abs(value) / scale))
+            colour = (g, g, 255) if m >= 2 else (g, g, g)
+            cv2.rectangle(panel, (x, y), (x + w, y + w), colour, -1)
+            cv2.rectangle(panel, (x, y), (x + w, y + w), (120, 120, 120), 1)
+
+        third = size // 3
+        for a in range(3):
+            for b in range(3):
+                if (a, b) != (1, 1):
+                    cell(x0 + (2 - b) * third, y0 + (2 - a) * third, third, values[OUTER_BIN[3 * a + b]])
+        for c in range(3):
+            for d in range(3):
+                cell(x0 + third + (2 - d) * third // 3, y0 + third + (2 - c) * third // 3, third // 3, values[8 + 3 * c + d])
+        cv2.putText(panel, name, (x0 + size + 2 - 96, y0 - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    return label(panel, f"state bins (tsdf sum {state[68]:.2f}, det sum {state[69]:.2f}, roll {state[70]:.2f})")
+
+
+def demo_frame(env: ObjectFindingEnv, state: np.ndarray, text: str) -> np.ndarray:
+    """The four pictures of one moment side by side, (240, 1280, 3) RGB."""
+    views = env.last_views
+    return np.concatenate([label(env.outside_view(*PANEL), text), wrist_panel(views["rgb"], views["detections"]),
+                           volume_panel(env.volume, env.gripper_pose()), bins_panel(state)], axis=1)
+
+
+def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path) -> tuple[Path, Path, dict]:
+    """One episode to an MP4 (every step) and a PNG contact sheet (four moments of it)."""
+    env = ObjectFindingEnv(task, scene, seed=seed)
+    agent = AGENTS[agent_name]() if agent_name != "random" else RandomAgent(seed)
+    state, info = env.reset()
+    agent.reset(env)
+    frames = [demo_frame(env, state, f"{task}/{scene} seed {seed}: start")]
+    done = False
+    while not done:
+        state, reward, done, _, info = env.step(agent.act(state, env))
+        status = f"step {info['steps']}: seen {info['target_seen_fraction']:.2f}, explored {info['explored_fraction']:.2f}"
+        if done:
+            status += "  SUCCESS" if info["success"] else "  FAILURE"
+        frames.append(demo_frame(env, state, status))
+    env.close()
+    out_dir.mkdir(exist_ok=True)
+    stem = out_dir / f"demo-{task}-{scene}-{agent_name}"
+    picks = sorted(set(np.linspace(0, len(frames) - 1, 4).round().astype(int)))
+    sheet = np.concatenate([frames[i] for i in picks], axis=0)
+    png, mp4 = stem.with_suffix(".png"), stem.with_suffix(".mp4")
+    cv2.imwrite(str(png), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    h, w = frames[0].shape[:2]
+    writer = cv2.VideoWriter(str(mp4), cv2.VideoWriter_fourcc(*"mp4v"), 4, (w, h))
+    for frame in frames:
+        writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+    writer.release()
+    return png, mp4, info
