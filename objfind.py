@@ -14,7 +14,6 @@ Read top to bottom: settings, perception, volume, encoder, simulation, agents, c
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import os
 import re
@@ -23,11 +22,30 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+# The per-step linear algebra is tiny: BLAS threads would only fight the worker processes for cores.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 import cv2
 import gymnasium as gym
 import numpy as np
-import pybullet as pb
 import pybullet_data
+
+
+def _import_quietly(name: str):
+    """Import a module with file descriptor 2 silenced: pybullet prints its build date on import."""
+    import importlib
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    try:
+        return importlib.import_module(name)
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved), os.close(devnull)
+
+
+pb = _import_quietly("pybullet")
 
 # ================================================================================================
 # Settings: Table I presets and the constants of Sec. IV-A. Lengths in metres, angles in radians.
@@ -121,15 +139,21 @@ OTHER_RGBA = (  # clearly non-red: none of these passes the detector under any s
     (0.10, 0.30, 0.90, 1), (0.15, 0.65, 0.20, 1), (0.90, 0.85, 0.20, 1), (0.55, 0.55, 0.55, 1),
     (0.20, 0.70, 0.80, 1), (0.92, 0.92, 0.92, 1), (0.35, 0.35, 0.40, 1), (0.45, 0.25, 0.75, 1),
 )
-RED_MIN_A = 40   # CIELAB a* (green-red axis, signed) a pixel needs to count as red
-RED_MIN_CHROMA_RATIO = 1.2  # ... and a* must dominate |b*| so yellows and purples stay out
+RED_MIN_CHROMA = 20.0            # CIELAB chroma sqrt(a*^2 + b*^2): saturated enough to be a colour
+RED_HUE_DEG = (-10.0, 50.0)      # CIELAB hue atan2(b*, a*): red, not orange, pink or purple
 
 
 def detect_target(rgb: np.ndarray) -> np.ndarray:
-    """CIELAB red detector: (H, W, 3) uint8 RGB -> (H, W) float32, 1 on the target, 0 elsewhere."""
-    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB).astype(np.int16)
+    """CIELAB red detector: (H, W, 3) uint8 RGB -> (H, W) float32, 1 on the target, 0 elsewhere.
+
+    Hue and chroma in CIELAB barely change with shading, so lit and shadowed faces of the red target
+    pass while blues, purples, yellows and greys do not, however bright or dark.
+    """
+    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB).astype(np.float32)
     a, b = lab[..., 1] - 128, lab[..., 2] - 128   # OpenCV stores a*, b* offset by 128
-    return ((a > RED_MIN_A) & (a > RED_MIN_CHROMA_RATIO * np.abs(b))).astype(np.float32)
+    hue = np.degrees(np.arctan2(b, a))
+    red = (np.hypot(a, b) > RED_MIN_CHROMA) & (hue > RED_HUE_DEG[0]) & (hue < RED_HUE_DEG[1])
+    return red.astype(np.float32)
 
 
 def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, s: Settings) -> np.ndarray:
@@ -1040,3 +1064,168 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path) -
         writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
     writer.release()
     return png, mp4, info
+
+# ================================================================================================
+# Benchmark: where the time of one env step goes, and env steps/s over worker processes.
+# ================================================================================================
+
+
+def exploring_actions(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Random displacements that never terminate: the bench's workload. (n, 6) float32."""
+    actions = rng.uniform(-1, 1, (n, 6)).astype(np.float32)
+    actions[:, 5] = -1.0
+    return actions
+
+
+def bench_stages(task: str, steps: int, seed: int = 0) -> dict:
+    """Mean milliseconds per stage of one step on task/cubes, over `steps` exploring steps."""
+    env = ObjectFindingEnv(task, "cubes", seed=seed)
+    env.reset()
+    totals = dict.fromkeys(list(env.timings) + ["step", "reset"], 0.0)
+    resets = 1
+    t0 = time.perf_counter()
+    env.reset(seed=seed)
+    totals["reset"] += time.perf_counter() - t0
+    for action in exploring_actions(np.random.default_rng(seed), steps):
+        t0 = time.perf_counter()
+        *_, done, _, _ = env.step(action)
+        totals["step"] += time.perf_counter() - t0
+        for stage, ms in env.timings.items():
+            totals[stage] += ms / 1e3
+        if done:
+            t0 = time.perf_counter()
+            env.reset()
+            totals["reset"] += time.perf_counter() - t0
+            resets += 1
+    env.close()
+    means = {stage: 1e3 * total / steps for stage, total in totals.items()}
+    means["reset"] = 1e3 * totals["reset"] / resets
+    return means
+
+
+def bench_throughput(task: str, steps: int, workers: int, seed: int = 0) -> float:
+    """Env steps per second (resets included) with `workers` processes, or in-process when workers is 0."""
+    rng = np.random.default_rng(seed)
+    if workers == 0:
+        env = ObjectFindingEnv(task, "cubes", seed=seed)
+        env.reset()
+        t0 = time.perf_counter()
+        for action in exploring_actions(rng, steps):
+            if env.step(action)[2]:
+                env.reset()
+        elapsed = time.perf_counter() - t0
+        env.close()
+        return steps / elapsed
+    fns = [functools.partial(ObjectFindingEnv, task, "cubes", seed + i) for i in range(workers)]
+    envs = gym.vector.AsyncVectorEnv(fns, context="spawn")
+    envs.reset()
+    n = max(1, steps // workers)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        envs.step(exploring_actions(rng, workers))
+    elapsed = time.perf_counter() - t0
+    envs.close()
+    return n * workers / elapsed
+
+
+def run_bench(steps: int, workers: int) -> str:
+    """The report of `python objfind.py bench` as Markdown."""
+    stages = ("physics", "render", "detect", "integrate", "encode", "step", "reset")
+    lines = [f"Per-stage milliseconds of one step (mean over {steps} exploring steps, one process):", "",
+             "| task / scene | " + " | ".join(stages) + " |", "|---" * (len(stages) + 1) + "|"]
+    throughput = []
+    for task in ("ap", "ip"):
+        means = bench_stages(task, steps)
+        lines.append(f"| {task} / cubes | " + " | ".join(f"{means[s]:.2f}" for s in stages) + " |")
+        single = bench_throughput(task, steps, 0)
+        multi = bench_throughput(task, steps * workers, workers)
+        throughput.append(f"| {task} / cubes | {single:.0f} | {multi:.0f} | {multi / single:.2f}x |")
+    lines += ["", f"Env steps per second (resets included), {os.cpu_count()} cores:", "",
+              f"| task / scene | 1 process | {workers} worker processes | speed-up |", "|---|---|---|---|"]
+    return "\n".join(lines + throughput)
+
+# ================================================================================================
+# Command line: demo and bench. Bad input ends with one line and exit status 2.
+# ================================================================================================
+
+
+class UsageError(Exception):
+    """Bad input from the command line: reported in one line, exit status 2."""
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    def error(self, message):
+        sys.stderr.write(f"objfind: error: {message}\n")
+        sys.exit(2)
+
+
+def count_arg(text: str) -> int:
+    """A non-negative integer (seeds, steps)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must not be negative")
+    return value
+
+
+def positive_arg(text: str) -> int:
+    value = count_arg(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be positive")
+    return value
+
+
+def output_dir(text: str) -> Path:
+    """An output folder: created if missing, but its parent must exist."""
+    path = Path(text)
+    if not path.parent.is_dir():
+        raise UsageError(f"the parent of the output folder {text!r} does not exist")
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"{text!r} exists and is not a folder")
+    return path
+
+
+def cmd_demo(args) -> int:
+    png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, output_dir(args.out))
+    outcome = "success" if info["success"] else "failure"
+    print(f"{args.agent} on {args.task}/{args.scene} seed {args.seed}: {outcome} after {info['steps']} steps "
+          f"(target seen {info['target_seen_fraction']:.2f}, explored {info['explored_fraction']:.2f})")
+    print(f"wrote {png} and {mp4}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    print(run_bench(args.steps, args.workers))
+    return 0
+
+
+def build_parser() -> ArgumentParser:
+    parser = ArgumentParser(prog="objfind.py", description=__doc__.split("\n\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    demo = commands.add_parser("demo", help="one episode to a PNG contact sheet and an MP4")
+    demo.add_argument("--agent", choices=sorted(AGENTS), default="scripted")
+    demo.add_argument("--task", choices=list(TASKS), default="ap")
+    demo.add_argument("--scene", choices=SCENES, default="cubes")
+    demo.add_argument("--seed", type=count_arg, default=0)
+    demo.add_argument("--out", default="out", help="output folder (its parent must exist)")
+    demo.set_defaults(func=cmd_demo)
+    bench = commands.add_parser("bench", help="per-stage step time and env steps/s")
+    bench.add_argument("--steps", type=positive_arg, default=300, help="steps per measurement")
+    bench.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1)
+    bench.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except UsageError as error:
+        sys.stderr.write(f"objfind: error: {error}\n")
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

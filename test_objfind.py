@@ -1,0 +1,451 @@
+"""Tests for objfind: each asserts a behaviour that a wrong implementation would break."""
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import objfind as of
+
+HERE = Path(__file__).resolve().parent
+
+# ------------------------------------------------------------------------------------------------
+# helpers
+# ------------------------------------------------------------------------------------------------
+
+
+def small_volume(max_weight=2.0):
+    """The `ap` volume: 0.6 m wide, 0.3 m high, 6 mm voxels."""
+    return of.TSDFVolume(0.6, 0.3, 100, 0.04, max_weight)
+
+
+def looking_down(height_m, xy=(0.0, 0.0)):
+    """T_world_camera of a camera at `height_m` looking straight down (OpenCV axes)."""
+    T = np.eye(4)
+    T[:3, :3] = of.gripper_rotation(0.0, 0.0)
+    T[:3, 3] = [xy[0], xy[1], height_m]
+    return T
+
+
+K = of.intrinsics(of.TASKS["ap"])
+
+
+def plane_view(volume, plane_z, detection=0.0, camera_z=0.3, times=1):
+    """Integrate a view of a horizontal plane at plane_z (depth is constant for a downward camera)."""
+    depth = np.full((60, 80), camera_z - plane_z, np.float32)
+    detections = np.full((60, 80), detection, np.float32)
+    for _ in range(times):
+        volume.integrate(depth, detections, K, looking_down(camera_z))
+
+
+def column(volume, values, xy=(0.0, 0.0)):
+    """The volume's values along z at the column containing world point xy."""
+    i, j = (int((c - o) / volume.voxel_m) for c, o in zip(xy, volume.origin[:2]))
+    return values[i, j]
+
+
+def z_of(volume, k):
+    return (k + 0.5) * volume.voxel_m
+
+
+def zero_crossing(volume):
+    """Height of the sign change from negative (below) to positive (above) in the centre column."""
+    t, w = column(volume, volume.tsdf), column(volume, volume.weight)
+    ks = [k for k in range(len(t) - 1) if w[k] > 0 and w[k + 1] > 0 and t[k] < 0 <= t[k + 1]]
+    assert len(ks) == 1, t
+    k = ks[0]
+    return z_of(volume, k) + (z_of(volume, k + 1) - z_of(volume, k)) * (-t[k]) / (t[k + 1] - t[k])
+
+
+# ------------------------------------------------------------------------------------------------
+# settings
+# ------------------------------------------------------------------------------------------------
+
+
+def test_presets_follow_table_one():
+    ap, large, ip = of.TASKS["ap"], of.TASKS["ap-large"], of.TASKS["ip"]
+    assert (ap.min_objects, ap.max_objects, ap.piles, ap.workspace_m, ap.horizon) == (5, 25, 0, 0.6, 130)
+    assert (large.min_objects, large.max_objects, large.workspace_m, large.horizon) == (10, 40, 1.2, 500)
+    assert (ip.min_objects, ip.max_objects, ip.piles, ip.exploration_ratio) == (15, 75, 3, 0.25)
+    assert all(s.no_target_prob == 0.10 and s.trunc_m == 0.04 and s.max_weight == 2 for s in of.TASKS.values())
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        ap.horizon = 10
+
+
+# ------------------------------------------------------------------------------------------------
+# perception
+# ------------------------------------------------------------------------------------------------
+
+
+def test_detector_finds_red_under_any_shading_and_nothing_else():
+    image = np.zeros((40, 10 * (1 + len(of.OTHER_RGBA)), 3), np.uint8)
+    for i, rgba in enumerate((of.TARGET_RGBA,) + of.OTHER_RGBA):
+        for row, shade in enumerate(np.linspace(0.35, 1.0, 4)):   # lit to shadowed faces
+            image[10 * row:10 * row + 10, 10 * i:10 * i + 10] = (np.array(rgba[:3]) * shade * 255).astype(np.uint8)
+    detections = of.detect_target(image)
+    assert detections.dtype == np.float32 and detections.shape == image.shape[:2]
+    assert detections[:, :10].min() == 1.0
+    assert detections[:, 10:].max() == 0.0
+
+
+def test_detector_noise_follows_the_paper():
+    s = of.TASKS["ap"]
+    truth = np.zeros((200, 200), np.float32)
+    truth[:100] = 1.0
+    noisy = of.add_detector_noise(truth, np.random.default_rng(0), s)
+    true_part, false_part = noisy[:100], noisy[100:]
+    assert abs(float(1.0 - true_part.mean()) - 1 / s.noise_rate) < 0.005      # Exp(20) has mean 0.05
+    assert abs(np.count_nonzero(false_part) / false_part.size - s.false_positive_share) < 0.005
+    assert abs(float(false_part[false_part > 0].mean()) - 1 / s.noise_rate) < 0.01
+    again = of.add_detector_noise(truth, np.random.default_rng(0), s)
+    assert np.array_equal(noisy, again)
+
+
+# ------------------------------------------------------------------------------------------------
+# volume
+# ------------------------------------------------------------------------------------------------
+
+
+def test_tsdf_of_a_plane_at_a_known_depth():
+    volume = small_volume()
+    plane_view(volume, plane_z=0.1)
+    assert abs(zero_crossing(volume) - 0.1) < volume.voxel_m
+    t, w = column(volume, volume.tsdf), column(volume, volume.weight)
+    ks = np.arange(len(t))
+    in_front = (z_of(volume, ks) > 0.1 + 0.04) & (z_of(volume, ks) < 0.25)   # (the top is outside the frustum)
+    assert np.all(w[in_front] > 0) and np.allclose(t[in_front], 1.0)       # free space, truncated
+    behind = z_of(volume, ks) < 0.1 - 0.04 - volume.voxel_m
+    assert np.all(w[behind] == 0) and np.all(t[behind] == 0)                # never seen
+    band = np.abs(z_of(volume, ks) - 0.1) < 0.04 - volume.voxel_m
+    assert np.all(np.abs(t[band]) < 1.0)
+    assert 0 < volume.explored_fraction() < 1
+    assert volume.observed_count == np.count_nonzero(volume.observed())
+
+
+def test_integration_only_touches_the_frustum():
+    volume = small_volume()
+    plane_view(volume, plane_z=0.0, camera_z=0.1)   # a low camera sees a small patch of floor
+    observed = volume.observed()
+    assert observed[50, 50].any()
+    assert not observed[:10].any() and not observed[-10:].any()
+
+
+def test_detection_is_integrated_then_carved_away_in_free_space():
+    volume = small_volume()
+    plane_view(volume, plane_z=0.1, detection=1.0)
+    d = column(volume, volume.detections)
+    k_surface = int(0.1 / volume.voxel_m)
+    assert d[k_surface] > 0.8 and d[k_surface + 10] == 0.0     # unsigned distance: peak at the surface
+    plane_view(volume, plane_z=0.0, detection=0.0)             # the object is gone: its voxels are free
+    assert np.all(column(volume, volume.detections)[k_surface - 2:k_surface + 3] == 0.0)
+    assert volume.perceived_target_fraction(of.TASKS["ap"]) == 0.0
+
+
+def test_max_weight_two_forgets_a_removed_object_after_two_views():
+    for max_weight, forgotten in ((2.0, True), (50.0, False)):
+        volume = small_volume(max_weight)
+        plane_view(volume, plane_z=0.1, times=10)               # the object, seen for a long time
+        plane_view(volume, plane_z=0.0, times=2)                # removed: two new views of the floor
+        t = column(volume, volume.tsdf)
+        k_old = int(0.1 / volume.voxel_m) - 3                   # inside the removed object
+        assert (t[k_old] > 0) == forgotten
+        assert column(volume, volume.weight).max() <= max_weight
+
+
+def test_a_surface_that_moved_within_the_truncation_band_settles_at_its_new_depth():
+    volume = small_volume()
+    plane_view(volume, plane_z=0.1, times=5)
+    plane_view(volume, plane_z=0.07, times=6)       # weight 2: old values fade by 2/3 per view
+    assert abs(zero_crossing(volume) - 0.07) < volume.voxel_m
+
+
+# ------------------------------------------------------------------------------------------------
+# encoder
+# ------------------------------------------------------------------------------------------------
+
+
+def put(volume, values, xy, z, value):
+    i, j = (int((c - o) / volume.voxel_m) for c, o in zip(xy, volume.origin[:2]))
+    values[i, j, int(z / volume.voxel_m)] = value
+    volume.weight[i, j, int(z / volume.voxel_m)] = 1.0
+
+
+def test_the_71_values_of_a_hand_built_volume():
+    volume = small_volume()
+    ee, finger_z = np.array([0.0, 0.0, 0.15]), 0.15
+    put(volume, volume.tsdf, (0.25, 0.0), 0.05, 1.0)     # 0.25 m ahead, below the fingers: outer front cell
+    put(volume, volume.tsdf, (-0.25, 0.0), 0.20, 1.0)    # behind, above the fingers: outer back cell
+    put(volume, volume.tsdf, (-0.25, 0.0), 0.25, 1.0)
+    put(volume, volume.tsdf, (0.0, 0.0), 0.05, -1.0)     # under the gripper: the inner centre cell
+    put(volume, volume.detections, (0.0, 0.1), 0.05, 0.8)   # to the left, below: inner left cell
+    state = of.encode_state(volume, ee, 0.0, 0.3, finger_z, 1.2, detection_scale=4.0)
+    expected = np.zeros(71, np.float32)
+    # bins: outer (a, b) with a = 2 front, b = 1 middle -> bin 6; back (0, 1) -> bin 1; inner centre 8 + 4
+    tsdf_sum = 1.0 + 2.0 - 1.0
+    expected[0 + 1] = 2.0 / tsdf_sum                     # TSDF above: back cell
+    expected[17 + 6] = 1.0 / tsdf_sum                    # TSDF below: front cell
+    expected[17 + 12] = -1.0 / tsdf_sum                  # TSDF below: under the gripper
+    expected[51 + 8 + 3 * 1 + 2] = 1.0                   # detections below: inner middle row, left column
+    expected[68] = tsdf_sum / volume.tsdf.size
+    expected[69] = 0.8 / 4.0
+    expected[70] = 0.3
+    np.testing.assert_allclose(state, expected, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.7, 2.5, -1.9])
+def test_a_detection_to_the_gripper_left_lands_in_a_left_bin_whatever_the_yaw(yaw):
+    volume = small_volume()
+    ee = np.array([0.02, -0.01, 0.2])
+    for forward, left, bin_index in ((0.0, 0.1, 8 + 3 * 1 + 2), (0.0, -0.1, 8 + 3 * 1 + 0),
+                                     (0.1, 0.0, 8 + 3 * 2 + 1), (0.0, 0.25, 4)):
+        volume.detections[:] = 0
+        xy = ee[:2] + of.rotation_z(yaw)[:2, :2] @ [forward, left]
+        put(volume, volume.detections, xy, 0.05, 1.0)
+        state = of.encode_state(volume, ee, yaw, 0.0, 0.2)
+        assert np.argmax(state[51:68]) == bin_index and state[51 + bin_index] == 1.0
+
+
+def test_bins_partition_the_crop():
+    u, v = np.meshgrid(np.linspace(-0.8, 0.8, 161), np.linspace(-0.8, 0.8, 161))
+    bins = of.column_bins(u.ravel(), v.ravel(), 1.2)
+    inside = (np.abs(u.ravel()) < 0.6) & (np.abs(v.ravel()) < 0.6)
+    assert set(bins[inside]) == set(range(17)) and set(bins[~inside]) == {17}
+
+
+# ------------------------------------------------------------------------------------------------
+# simulation
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def ap_env():
+    env = of.ObjectFindingEnv("ap", "cubes")
+    yield env
+    env.close()
+
+
+def seed_with(env, **wanted):
+    """The first seed whose scene has the wanted info values (e.g. target_present=False)."""
+    for seed in range(200):
+        obs, info = env.reset(seed=seed)
+        if all(info[k] == v for k, v in wanted.items()):
+            return seed, obs, info
+    raise AssertionError(f"no seed with {wanted}")
+
+
+@pytest.mark.filterwarnings("ignore:.*Box observation space.*infinity")
+def test_env_follows_the_gymnasium_api(ap_env):
+    from gymnasium.utils.env_checker import check_env
+    check_env(ap_env, skip_render_check=True)
+    assert ap_env.action_space == gym.spaces.Box(-1, 1, (6,), np.float32)
+    assert ap_env.observation_space.shape == (71,)
+
+
+def test_same_seed_same_scene_and_state_different_seed_different(ap_env):
+    def snapshot(seed):
+        obs, info = ap_env.reset(seed=seed)
+        poses = [of.pb.getBasePositionAndOrientation(o.body, physicsClientId=ap_env.client)[0] for o in ap_env.objects]
+        return obs, np.array(poses), ap_env.gripper_pose()
+
+    a, b, c = snapshot(7), snapshot(7), snapshot(8)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])
+    assert not np.array_equal(a[0], c[0])
+    assert a[1].shape != c[1].shape or not np.allclose(a[1], c[1])
+
+
+def test_rewards_of_each_termination_kind(ap_env):
+    s = ap_env.s
+    terminate, stay = np.array([0, 0, 0, 0, 0, 1.0]), np.array([0, 0, 0, 0, 0, -1.0])
+    seed, *_ = seed_with(ap_env, target_present=True, target_observed=False)
+    _, reward, done, truncated, info = ap_env.step(terminate)        # claims too early
+    assert (reward, done, truncated, info["success"]) == (-s.time_penalty - s.detection_reward, True, False, False)
+    ap_env.reset(seed=seed)
+    ap_env.target_seen[:] = True                                       # as if the target had been seen
+    _, reward, done, _, info = ap_env.step(terminate)
+    assert (reward, done, info["success"]) == (-s.time_penalty + s.detection_reward, True, True)
+    seed_with(ap_env, target_present=False)
+    _, reward, done, _, info = ap_env.step(terminate)                 # "there is no target": right
+    assert (reward, done, info["success"]) == (-s.time_penalty + s.detection_reward, True, True)
+    ap_env.reset(seed=seed)
+    ap_env.s = dataclasses.replace(s, horizon=3)
+    try:
+        rewards = [ap_env.step(stay)[1] for _ in range(2)]
+        _, reward, done, truncated, info = ap_env.step(stay)
+    finally:
+        ap_env.s = s
+    assert rewards == [-s.time_penalty] * 2                           # no motion, nothing new seen
+    assert (reward, done, truncated, info["success"]) == (-s.time_penalty - s.detection_reward, True, False, False)
+
+
+def test_exploration_reward_is_positive_and_never_exceeds_the_time_penalty(ap_env):
+    ap_env.reset(seed=3)
+    rewards = [ap_env.step(np.array([0.0, 0.0, 1.0, 0.5, 1.0, -1.0]))[1] for _ in range(4)]
+    assert all(-1.0 <= r <= 0.0 for r in rewards)
+    assert max(rewards) > -1.0
+
+
+def test_the_gripper_stays_in_the_workspace_and_never_passes_a_wall(ap_env):
+    s = ap_env.s
+    half = s.workspace_m / 2
+    ap_env.reset(seed=0)
+    ap_env._teleport(np.array([0.2, 0.0, 0.05]), of.gripper_rotation(0.0, 0.0))
+    for _ in range(6):                                    # low, straight into the +x wall
+        ap_env.step(np.array([1.0, 0, -0.3, 0, 0, -1]))
+        lo, hi = of.pb.getAABB(ap_env.gripper, physicsClientId=ap_env.client)
+        assert hi[0] < half + 0.004                       # the wall's inner face is at x = half
+    for _ in range(8):                                    # up and out over the -y wall
+        ap_env.step(np.array([0.0, -1.0, 1.0, 0, 1.0, -1]))
+    for _ in range(8):                                    # down into the floor
+        ap_env.step(np.array([0.0, 0.0, -1.0, 0, 0, -1]))
+    T = ap_env.gripper_pose()
+    assert np.all(np.abs(T[:2, 3]) <= half + 0.001) and -0.002 < T[2, 3] <= s.ceiling_m + 0.001
+
+
+def test_yaw_and_roll_round_trip():
+    for yaw, roll in ((0.3, -0.4), (-2.9, 0.9), (1.2, 0.0)):
+        assert np.allclose(of.yaw_roll_of(of.gripper_rotation(yaw, roll)), (yaw, roll))
+        R = of.gripper_rotation(yaw, roll)
+        q = of.quat_of(R)
+        assert np.allclose(np.array(of.pb.getMatrixFromQuaternion(q)).reshape(3, 3), R, atol=1e-6)
+
+
+def test_rendered_depth_matches_the_camera_model(ap_env):
+    """A cube straight below the camera: its top face at the expected depth and pixel."""
+    ap_env.reset(seed=3)
+    target = ap_env.objects[0]
+    pos, _ = of.pb.getBasePositionAndOrientation(target.body, physicsClientId=ap_env.client)
+    T_camera = looking_down(pos[2] + 0.25, pos[:2])
+    rgb, depth = of.render_rgbd(ap_env.client, T_camera, K, 80, 60, 0.01, 1.2)
+    top = 0.25 - of.Settings.object_size_m / 2
+    assert abs(depth[30, 40] - top) < 0.003
+    red = of.detect_target(rgb) if ap_env.target_present else None
+    if red is not None:
+        ys, xs = np.nonzero(red)
+        assert abs(xs.mean() - 40) < 1.5 and abs(ys.mean() - 30) < 1.5
+
+
+def test_target_seen_counts_only_points_that_face_the_camera(ap_env):
+    seed, *_ = seed_with(ap_env, target_present=True)
+    pos, _ = of.pb.getBasePositionAndOrientation(ap_env.objects[0].body, physicsClientId=ap_env.client)
+    ap_env._teleport(np.array(pos) + [0, 0, 0.2], of.gripper_rotation(0.0, 0.0))
+    ap_env.target_seen[:] = False
+    ap_env._observe()
+    top_only = ap_env.target_seen.mean()
+    assert 0.1 < top_only < ap_env.s.seen_threshold       # the top face of a cube is a sixth of it
+    ap_env._teleport(np.array(pos) + [0.12, 0.0, 0.15], of.gripper_rotation(0.0, 0.0))
+    ap_env._observe()                                      # from the side: a second face appears
+    assert ap_env.target_seen.mean() >= ap_env.s.seen_threshold
+
+
+@pytest.mark.parametrize("scene", of.SCENES)
+def test_every_scene_kind_builds_and_only_the_target_is_red(scene):
+    env = of.ObjectFindingEnv("ap", scene)
+    try:
+        seed_with(env, target_present=False)
+        assert 5 <= len(env.objects) <= 25
+        assert of.detect_target(env.outside_view()).sum() == 0
+        seed, obs, info = seed_with(env, target_present=True)
+        assert of.detect_target(env.outside_view()).sum() > 0
+        assert obs.shape == (71,) and np.all(np.isfinite(obs))
+        obs, *_ = env.step(env.action_space.sample())
+        assert np.all(np.isfinite(obs))
+    finally:
+        env.close()
+
+
+def test_piles_bury_the_target():
+    env = of.ObjectFindingEnv("ip", "cubes")
+    try:
+        buried = 0
+        for seed in range(12):
+            env.reset(seed=seed)
+            if not (env.piles and env.target_present):
+                continue
+            assert 15 <= len(env.objects) <= 75
+            c = env.client
+            target = np.array(of.pb.getBasePositionAndOrientation(env.objects[0].body, physicsClientId=c)[0])
+            others = np.array([of.pb.getBasePositionAndOrientation(o.body, physicsClientId=c)[0] for o in env.objects[1:]])
+            near = np.linalg.norm(others[:, :2] - target[:2], axis=1) < 0.06
+            buried += bool(np.any(others[near, 2] > target[2] + 0.02))
+            assert target[2] < 0.03                                 # on the floor, at the bottom
+        assert buried >= 3
+    finally:
+        env.close()
+
+
+def test_a_push_moves_objects():
+    env = of.ObjectFindingEnv("ip", "cubes")
+    try:
+        seed_with(env, target_present=True)
+        c = env.client
+        before = np.array([of.pb.getBasePositionAndOrientation(o.body, physicsClientId=c)[0] for o in env.objects])
+        target = before[0]
+        env._teleport(target + [-0.15, 0, 0.01], of.gripper_rotation(0.0, 0.0))
+        for _ in range(5):                               # yaw 0: +x is forward
+            env.step(np.array([1.0, 0, 0, 0, 0, -1]))
+        after = np.array([of.pb.getBasePositionAndOrientation(o.body, physicsClientId=c)[0] for o in env.objects])
+        assert np.linalg.norm(after[0] - target) > 0.03  # the target was pushed along
+        assert np.count_nonzero(np.linalg.norm(after - before, axis=1) > 0.01) >= 2
+    finally:
+        env.close()
+
+
+def test_vector_env_over_worker_processes():
+    import functools
+    fns = [functools.partial(of.ObjectFindingEnv, "ap", "cubes", i) for i in range(2)]
+    envs = gym.vector.AsyncVectorEnv(fns, context="spawn")
+    try:
+        obs, info = envs.reset(seed=0)
+        assert obs.shape == (2, 71)
+        obs, reward, done, truncated, info = envs.step(of.exploring_actions(np.random.default_rng(0), 2))
+        assert obs.shape == (2, 71) and reward.shape == (2,)
+    finally:
+        envs.close()
+
+
+# ------------------------------------------------------------------------------------------------
+# command line
+# ------------------------------------------------------------------------------------------------
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, str(HERE / "objfind.py"), *args], capture_output=True, text=True,
+                          timeout=300)
+
+
+@pytest.mark.parametrize("args", [["demo", "--task", "nope"], ["demo", "--scene", "boxes"],
+                                  ["demo", "--seed", "-1"], ["demo", "--out", "/no/such/parent/demo"],
+                                  ["bench", "--steps", "-5"], ["bench", "--workers", "two"], ["fly"], []])
+def test_cli_bad_input_is_one_line_and_exit_two(args):
+    result = run_cli(*args)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and result.stderr.startswith("objfind: error:")
+
+
+def test_demo_writes_a_contact_sheet_and_a_video(tmp_path):
+    out = tmp_path / "demo"
+    assert of.main(["demo", "--agent", "random", "--seed", "2", "--out", str(out)]) == 0
+    png = out / "demo-ap-cubes-random.png"
+    sheet = cv2.imread(str(png))
+    assert sheet is not None and sheet.shape[1] == 4 * of.PANEL[0] and sheet.shape[0] % of.PANEL[1] == 0
+    video = cv2.VideoCapture(str(out / "demo-ap-cubes-random.mp4"))
+    ok, frame = video.read()
+    assert ok and frame.shape[:2] == (of.PANEL[1], 4 * of.PANEL[0])
+
+
+def test_scripted_agent_finds_a_visible_target(ap_env):
+    agent = of.ScriptedAgent()
+    successes = 0
+    for seed in range(5):
+        obs, info = ap_env.reset(seed=seed)
+        agent.reset(ap_env)
+        done = False
+        while not done:
+            obs, reward, done, _, info = ap_env.step(agent.act(obs, ap_env))
+        successes += info["success"]
+    assert successes >= 3
