@@ -527,9 +527,8 @@ class SceneObject:
     half_height_m: float   # lowest vertex below the body origin when upright
 
 
-def make_object(client: int, scene: str, rng: np.random.Generator, rgba) -> SceneObject:
-    """One object of a scene kind, created at the origin; the caller places it."""
-    size = Settings.object_size_m
+def make_object(client: int, scene: str, size: float, rng: np.random.Generator, rgba) -> SceneObject:
+    """One object of a scene kind, primitives scaled to `size`, created at the origin; the caller places it."""
     kind = "cube" if scene == "cubes" else None
     if scene in ("fixed-primitives", "variable-primitives"):
         kind = ("cube", "cuboid", "cylinder", "prism")[rng.integers(4)]
@@ -662,7 +661,7 @@ class ObjectFindingEnv(gym.Env):
                     z = obj.half_height_m + 0.002
                     break
             else:
-                z = 0.15 + 0.05 * len(poses) % 0.2
+                z = obj.half_height_m + 0.1      # no free spot: it falls onto whatever is below
             placed.append((xy, r))
             poses.append((np.r_[xy, z], rng.uniform(-np.pi, np.pi)))
         return poses
@@ -726,7 +725,7 @@ class ObjectFindingEnv(gym.Env):
         self.objects = []
         for i in range(count):
             rgba = TARGET_RGBA if (i == 0 and self.target_present) else OTHER_RGBA[rng.integers(len(OTHER_RGBA))]
-            self.objects.append(make_object(c, self.scene, rng, rgba))
+            self.objects.append(make_object(c, self.scene, s.object_size_m, rng, rgba))
         poses = self._pile_positions(self.objects, rng) if piles else self._scatter_positions(self.objects, rng)
         for obj, (xyz, yaw) in zip(self.objects, poses):
             pb.resetBasePositionAndOrientation(obj.body, xyz, pb.getQuaternionFromEuler([0, 0, yaw]), physicsClientId=c)
@@ -912,12 +911,13 @@ class ObjectFindingEnv(gym.Env):
         s, c = self.s, self.client
         T_tool = self.gripper_pose()
         pb.resetBasePositionAndOrientation(self.ghost, T_tool[:3, 3], quat_of(T_tool[:3, :3]), physicsClientId=c)
-        eye = np.array([0.0, -1.25, 1.0]) * s.workspace_m
-        forward = -eye / np.linalg.norm(eye)
-        right = np.array([1.0, 0, 0])
-        down = np.cross(forward, right)
+        eye = np.array([0.0, -1.3, 1.3]) * s.workspace_m
+        forward = np.array([0.0, 0.0, 0.12 * s.workspace_m]) - eye
+        forward /= np.linalg.norm(forward)
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
         T = np.eye(4)
-        T[:3, :3] = np.stack([right, down, forward], 1)
+        T[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)   # OpenCV axes: x right, y down
         T[:3, 3] = eye
         K = np.array([[height * 1.1, 0, width / 2], [0, height * 1.1, height / 2], [0, 0, 1]])
         rgb, _ = render_rgbd(c, T, K, width, height, 0.05, 4 * s.workspace_m)
@@ -1004,14 +1004,13 @@ def wrist_panel(rgb: np.ndarray, detections: np.ndarray) -> np.ndarray:
 def volume_panel(volume: TSDFVolume, T_world_tool: np.ndarray) -> np.ndarray:
     """Top view of the volume: unobserved dark, observed light, occupied shaded by height, detected red."""
     observed = volume.weight.max(axis=2) > 0                               # (nx, ny)
-    surface = (volume.weight > 0) & (np.abs(volume.tsdf) < 0.5)
-    surface[:, :, :2] = False                                              # the floor is not an object
-    height = np.where(surface.any(axis=2), surface.shape[2] - np.argmax(surface[:, :, ::-1], axis=2), 0)
+    inside = (volume.weight > 0) & (volume.tsdf < 0)                       # behind a surface: an object
+    height = np.where(inside.any(axis=2), inside.shape[2] - np.argmax(inside[:, :, ::-1], axis=2), 0)
     detected = (volume.detections > 0.5).any(axis=2)
     top = np.full(observed.shape + (3,), 45, np.uint8)
     top[observed] = (215, 215, 210)
     occupied = height > 0
-    shade = (170 - 120 * height / surface.shape[2]).astype(np.uint8)
+    shade = (170 - 120 * height / inside.shape[2]).astype(np.uint8)
     top[occupied] = np.stack([shade, shade, shade + 20], -1)[occupied]
     top[detected] = (230, 30, 30)
     # arrays are [x, y]; draw x to the right and y up

@@ -357,6 +357,20 @@ def test_every_scene_kind_builds_and_only_the_target_is_red(scene):
         env.close()
 
 
+def test_object_counts_and_pile_free_share_follow_table_one():
+    env = of.ObjectFindingEnv("ip", "cubes")
+    rng = np.random.default_rng(0)
+    draws = [env._object_count(rng) for _ in range(2000)]
+    env.close()
+    counts, piles = np.array([d[0] for d in draws]), np.array([d[1] for d in draws])
+    assert counts.min() == 15 and counts.max() == 75
+    assert abs((~piles).mean() - 0.25) < 0.03                       # exploration ratio
+    dense = of.ObjectFindingEnv("ip", "fixed-primitives")
+    counts = [dense._object_count(rng) for _ in range(500)]
+    dense.close()
+    assert min(n for n, heaped in counts if heaped) >= 45            # 15-30 per pile, 3 piles
+
+
 def test_piles_bury_the_target():
     env = of.ObjectFindingEnv("ip", "cubes")
     try:
