@@ -463,3 +463,25 @@ def test_scripted_agent_finds_a_visible_target(ap_env):
             obs, reward, done, _, info = ap_env.step(agent.act(obs, ap_env))
         successes += info["success"]
     assert successes >= 3
+
+
+def test_large_workspace_and_rgb_render():
+    env = of.ObjectFindingEnv("ap-large", "cubes", seed=1, render_mode="rgb_array")
+    try:
+        obs, info = env.reset()
+        assert env.volume.shape == (100, 100, 50) and abs(env.volume.voxel_m - 0.012) < 1e-9
+        assert 10 <= len(env.objects) <= 40
+        frame = env.render()
+        assert frame.shape == (240, 320, 3) and frame.dtype == np.uint8
+        obs, reward, done, _, info = env.step(np.array([0, 0, 1.0, 0, 0, -1]))
+        assert obs.shape == (71,) and not done and info["explored_fraction"] > 0
+    finally:
+        env.close()
+
+
+def test_constructor_seed_makes_the_first_reset_reproducible():
+    a, b = of.ObjectFindingEnv("ap", "cubes", seed=11), of.ObjectFindingEnv("ap", "cubes", seed=11)
+    try:
+        assert np.array_equal(a.reset()[0], b.reset()[0])
+    finally:
+        a.close(), b.close()
