@@ -86,7 +86,7 @@ class Settings:
     near_m: float = 0.01
     camera_offset_m: float = 0.08       # camera sits this far behind the fingertips, on the approach axis
     max_roll_rad: float = 1.0           # tilt limit
-    exploration_normaliser: float = 0.01  # newly explored share of the volume that earns the full r_t
+    exploration_normaliser: float = 0.03  # newly explored share of the volume that earns the full r_t
     seen_threshold: float = 0.2         # target observed once this share of its surface points was seen
     surface_points: int = 200           # ground-truth points sampled on the target's surface
     seen_depth_tol_m: float = 0.01      # a point is unoccluded if within this of the rendered depth
