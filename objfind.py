@@ -46,6 +46,7 @@ def _import_quietly(name: str):
 
 
 pb = _import_quietly("pybullet")
+from pybullet_utils.bullet_client import BulletClient  # noqa: E402  (after pybullet's quiet import)
 
 # ================================================================================================
 # Settings: Table I presets and the constants of Sec. IV-A. Lengths in metres, angles in radians.
@@ -411,16 +412,15 @@ def intrinsics(s: Settings) -> np.ndarray:
     return np.array([[f, 0, s.image_width / 2], [0, f, s.image_height / 2], [0, 0, 1.0]])
 
 
-def render_rgbd(client: int, T_world_camera: np.ndarray, K: np.ndarray, width: int, height: int,
+def render_rgbd(sim, T_world_camera: np.ndarray, K: np.ndarray, width: int, height: int,
                 near_m: float, far_m: float) -> tuple[np.ndarray, np.ndarray]:
     """TinyRenderer RGB (H, W, 3) uint8 and depth (H, W) metres along z, 0 where nothing was hit."""
     T_gl = T_world_camera @ np.diag([1.0, -1.0, -1.0, 1.0])   # OpenGL cameras look down -z, y up
     view = np.linalg.inv(T_gl).T.reshape(-1)                  # pybullet wants column-major
     fov_y = np.degrees(2 * np.arctan(height / 2 / K[1, 1]))
     proj = pb.computeProjectionMatrixFOV(fov_y, width / height, near_m, far_m)
-    _, _, rgba, zbuf, _ = pb.getCameraImage(width, height, view, proj, renderer=pb.ER_TINY_RENDERER,
-                                            flags=pb.ER_NO_SEGMENTATION_MASK, shadow=0,
-                                            physicsClientId=client)
+    _, _, rgba, zbuf, _ = sim.getCameraImage(width, height, view, proj, renderer=pb.ER_TINY_RENDERER,
+                                            flags=pb.ER_NO_SEGMENTATION_MASK, shadow=0)
     rgb = np.asarray(rgba, np.uint8).reshape(height, width, 4)[:, :, :3]
     zbuf = np.asarray(zbuf, np.float32).reshape(height, width)
     depth = far_m * near_m / (far_m - (far_m - near_m) * zbuf)
@@ -527,7 +527,7 @@ class SceneObject:
     half_height_m: float   # lowest vertex below the body origin when upright
 
 
-def make_object(client: int, scene: str, size: float, rng: np.random.Generator, rgba) -> SceneObject:
+def make_object(sim, scene: str, size: float, rng: np.random.Generator, rgba) -> SceneObject:
     """One object of a scene kind, primitives scaled to `size`, created at the origin; the caller places it."""
     kind = "cube" if scene == "cubes" else None
     if scene in ("fixed-primitives", "variable-primitives"):
@@ -550,9 +550,9 @@ def make_object(client: int, scene: str, size: float, rng: np.random.Generator, 
             v, f = prism_mesh(2.2 * h, 2 * h)
             col = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist())
             vis = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist(), indices=f.reshape(-1).tolist())
-        body = pb.createMultiBody(0.1, pb.createCollisionShape(**col, physicsClientId=client),
-                                  pb.createVisualShape(**vis, rgbaColor=rgba, physicsClientId=client),
-                                  useMaximalCoordinates=True, physicsClientId=client)
+        body = sim.createMultiBody(0.1, sim.createCollisionShape(**col),
+                                  sim.createVisualShape(**vis, rgbaColor=rgba),
+                                  useMaximalCoordinates=True)
     else:
         data = pybullet_data.getDataPath()
         if scene == "random-shapes":
@@ -561,16 +561,15 @@ def make_object(client: int, scene: str, size: float, rng: np.random.Generator, 
         else:
             name, scale = OBJECT_MODELS[rng.integers(len(OBJECT_MODELS))]
             path = os.path.join(data, name)
-        body = pb.loadURDF(path, globalScaling=scale, useMaximalCoordinates=True, physicsClientId=client)
-        pb.changeVisualShape(body, -1, rgbaColor=rgba, textureUniqueId=-1, physicsClientId=client)
+        body = sim.loadURDF(path, globalScaling=scale, useMaximalCoordinates=True)
+        sim.changeVisualShape(body, -1, rgbaColor=rgba, textureUniqueId=-1)
         v, f = urdf_mesh(path)
         # pybullet's base frame is the inertial frame: move the link-frame mesh into it
-        _, _, _, inertial_pos, inertial_orn, *_ = pb.getDynamicsInfo(body, -1, physicsClientId=client)
+        _, _, _, inertial_pos, inertial_orn, *_ = sim.getDynamicsInfo(body, -1)
         R = np.array(pb.getMatrixFromQuaternion(inertial_orn)).reshape(3, 3)
         v = (v * scale - np.array(inertial_pos)) @ R
     # Objects may sleep: a resting pile then costs nothing per physics step until something touches it.
-    pb.changeDynamics(body, -1, lateralFriction=0.6, activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING,
-                      physicsClientId=client)
+    sim.changeDynamics(body, -1, lateralFriction=0.6, activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING)
     return SceneObject(body, v, f, float(np.linalg.norm(v[:, :2], axis=1).max()), float(-v[:, 2].min()))
 
 
@@ -600,7 +599,7 @@ class ObjectFindingEnv(gym.Env):
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (71,), np.float32)
         self.volume = TSDFVolume(s.workspace_m, s.volume_height_m, s.voxels_per_side, s.trunc_m, s.max_weight)
         self.K = intrinsics(s)
-        self.client = pb.connect(pb.DIRECT)
+        self.sim = BulletClient(pb.DIRECT)   # pybullet with this env's client id bound to every call
         self.timings = dict.fromkeys(("physics", "render", "detect", "integrate", "encode"), 0.0)
         self.last_views: dict = {}   # the latest rgb, depth and detections, for demos and tests
 
@@ -608,14 +607,14 @@ class ObjectFindingEnv(gym.Env):
 
     def _build_static(self) -> None:
         """Floor, four walls and the gripper on its constraint."""
-        s, c = self.s, self.client
+        s, sim = self.s, self.sim
         half = s.workspace_m / 2
         thick = 0.02
 
         def static_box(half_extents, pos, rgba):
-            return pb.createMultiBody(0, pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half_extents, physicsClientId=c),
-                                      pb.createVisualShape(pb.GEOM_BOX, halfExtents=half_extents, rgbaColor=rgba, physicsClientId=c),
-                                      pos, physicsClientId=c)
+            return sim.createMultiBody(0, sim.createCollisionShape(pb.GEOM_BOX, halfExtents=half_extents),
+                                      sim.createVisualShape(pb.GEOM_BOX, halfExtents=half_extents, rgbaColor=rgba),
+                                      pos)
 
         self.floor = static_box([half + 2 * thick] * 2 + [thick], [0, 0, -thick], (0.78, 0.76, 0.72, 1))
         wall_rgba = (0.55, 0.6, 0.68, 1)
@@ -625,20 +624,20 @@ class ObjectFindingEnv(gym.Env):
                        for sy in (-1, 1)]
         # The gripper (GRIPPER_BOXES). The wrist camera must not see it, so the outside view draws a ghost.
         boxes = GRIPPER_BOXES
-        col = pb.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=[b[0] for b in boxes],
-                                           collisionFramePositions=[b[1] for b in boxes], physicsClientId=c)
+        col = sim.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=[b[0] for b in boxes],
+                                           collisionFramePositions=[b[1] for b in boxes])
         # TinyRenderer draws a body without a visual shape from its collision shapes, so the gripper
         # gets a tiny sphere behind the camera as its only visual
-        speck = pb.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=[0, 0, -0.09],
-                                     rgbaColor=(0, 0, 0, 0), physicsClientId=c)
-        self.gripper = pb.createMultiBody(0.5, col, speck, [0, 0, 1], physicsClientId=c)
-        pb.changeDynamics(self.gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=c)
-        vis = pb.createVisualShapeArray([pb.GEOM_BOX] * 3, halfExtents=[b[0] for b in boxes],
+        speck = sim.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=[0, 0, -0.09],
+                                     rgbaColor=(0, 0, 0, 0))
+        self.gripper = sim.createMultiBody(0.5, col, speck, [0, 0, 1])
+        sim.changeDynamics(self.gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
+        vis = sim.createVisualShapeArray([pb.GEOM_BOX] * 3, halfExtents=[b[0] for b in boxes],
                                         visualFramePositions=[b[1] for b in boxes],
-                                        rgbaColors=[(0.25, 0.25, 0.28, 1)] * 3, physicsClientId=c)
-        self.ghost = pb.createMultiBody(0, -1, vis, [0, 0, -5], physicsClientId=c)
-        self.constraint = pb.createConstraint(self.gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0],
-                                              [0, 0, 1], physicsClientId=c)
+                                        rgbaColors=[(0.25, 0.25, 0.28, 1)] * 3)
+        self.ghost = sim.createMultiBody(0, -1, vis, [0, 0, -5])
+        self.constraint = sim.createConstraint(self.gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0],
+                                              [0, 0, 1])
 
     def _object_count(self, rng) -> tuple[int, bool]:
         """Number of objects and whether they are heaped into piles."""
@@ -701,35 +700,34 @@ class ObjectFindingEnv(gym.Env):
         physics steps cheap. Returns False if objects were still moving after max_steps.
         """
         for step in range(max_steps):
-            pb.stepSimulation(physicsClientId=self.client)
+            self.sim.stepSimulation()
             if step % 8 == 7 and self._objects_at_rest():
                 for o in self.objects:
-                    pb.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP, physicsClientId=self.client)
+                    self.sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
                 return True
         return False
 
     def _objects_at_rest(self) -> bool:
         if not self.objects:
             return True
-        velocity = np.array([pb.getBaseVelocity(o.body, physicsClientId=self.client)[0] for o in self.objects])
+        velocity = np.array([self.sim.getBaseVelocity(o.body)[0] for o in self.objects])
         return float(np.max(np.sum(velocity ** 2, axis=1))) < self.s.settle_speed ** 2
 
     def _build_scene(self, rng) -> None:
-        s, c = self.s, self.client
-        pb.resetSimulation(physicsClientId=c)
-        pb.setGravity(0, 0, -9.81, physicsClientId=c)
-        pb.setPhysicsEngineParameter(fixedTimeStep=1.0 / s.physics_hz, numSolverIterations=s.solver_iterations,
-                                     physicsClientId=c)
+        s, sim = self.s, self.sim
+        sim.resetSimulation()
+        sim.setGravity(0, 0, -9.81)
+        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / s.physics_hz, numSolverIterations=s.solver_iterations)
         self._build_static()
         count, piles = self._object_count(rng)
         self.target_present = bool(rng.random() >= s.no_target_prob)
         self.objects = []
         for i in range(count):
             rgba = TARGET_RGBA if (i == 0 and self.target_present) else OTHER_RGBA[rng.integers(len(OTHER_RGBA))]
-            self.objects.append(make_object(c, self.scene, s.object_size_m, rng, rgba))
+            self.objects.append(make_object(sim, self.scene, s.object_size_m, rng, rgba))
         poses = self._pile_positions(self.objects, rng) if piles else self._scatter_positions(self.objects, rng)
         for obj, (xyz, yaw) in zip(self.objects, poses):
-            pb.resetBasePositionAndOrientation(obj.body, xyz, pb.getQuaternionFromEuler([0, 0, yaw]), physicsClientId=c)
+            sim.resetBasePositionAndOrientation(obj.body, xyz, pb.getQuaternionFromEuler([0, 0, yaw]))
         self._settle(480 if piles else 240)
         self.piles, self.disturbed = piles, False
         if self.target_present:
@@ -741,7 +739,7 @@ class ObjectFindingEnv(gym.Env):
 
     def _place_gripper(self, rng) -> None:
         """Random x, y, height and yaw, roll 0; resampled while it would overlap an object."""
-        s, c = self.s, self.client
+        s, sim = self.s, self.sim
         half = s.workspace_m / 2 - 0.05
         for attempt in range(20):
             xyz = np.r_[rng.uniform(-half, half, 2), rng.uniform(0.1, s.ceiling_m)]
@@ -749,15 +747,15 @@ class ObjectFindingEnv(gym.Env):
                 xyz[2] = s.ceiling_m
             yaw = rng.uniform(-np.pi, np.pi)
             self._teleport(xyz, gripper_rotation(yaw, 0.0))
-            pb.performCollisionDetection(physicsClientId=c)
-            if not pb.getContactPoints(self.gripper, physicsClientId=c):
+            sim.performCollisionDetection()
+            if not sim.getContactPoints(self.gripper):
                 break
 
     # --- the gripper ----------------------------------------------------------------------------
 
     def gripper_pose(self) -> np.ndarray:
         """T_world_tool (4 x 4) of the gripper body as simulated."""
-        pos, orn = pb.getBasePositionAndOrientation(self.gripper, physicsClientId=self.client)
+        pos, orn = self.sim.getBasePositionAndOrientation(self.gripper)
         T = np.eye(4)
         T[:3, :3] = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
         T[:3, 3] = pos
@@ -765,9 +763,9 @@ class ObjectFindingEnv(gym.Env):
 
     def _teleport(self, xyz, R) -> None:
         q = quat_of(R)
-        pb.resetBasePositionAndOrientation(self.gripper, xyz, q, physicsClientId=self.client)
-        pb.resetBaseVelocity(self.gripper, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
-        pb.changeConstraint(self.constraint, xyz, q, maxForce=self.s.gripper_force_n, physicsClientId=self.client)
+        self.sim.resetBasePositionAndOrientation(self.gripper, xyz, q)
+        self.sim.resetBaseVelocity(self.gripper, [0, 0, 0], [0, 0, 0])
+        self.sim.changeConstraint(self.constraint, xyz, q, maxForce=self.s.gripper_force_n)
 
     def _move_gripper(self, action: np.ndarray) -> None:
         """Drive the gripper by one action's displacement: teleport through free space, simulate contact.
@@ -777,7 +775,7 @@ class ObjectFindingEnv(gym.Env):
         placed there and no physics step is spent. Otherwise the constraint pulls it there with bounded
         force while physics runs, until the pose is reached or the gripper stalls, then objects settle.
         """
-        s, c = self.s, self.client
+        s, sim = self.s, self.sim
         T = self.gripper_pose()
         yaw, roll = yaw_roll_of(T[:3, :3])
         roll = float(np.clip(roll + action[3] * s.max_turn_rad, -s.max_roll_rad, s.max_roll_rad))
@@ -787,21 +785,21 @@ class ObjectFindingEnv(gym.Env):
         floor_z = 0.005 + FINGER_REACH_M * abs(np.sin(roll))     # keep the fingertips above the floor
         goal = np.clip(T[:3, 3] + rotation_z(yaw) @ (action[:3] * s.max_step_m),
                        [-half, -half, floor_z], [half, half, s.ceiling_m])
-        lo, hi = pb.getAABB(self.gripper, physicsClientId=c)
+        lo, hi = sim.getAABB(self.gripper)
         corners = GRIPPER_CORNERS @ R_goal.T + goal
         lo = np.minimum(lo, corners.min(0)) - 0.005
         hi = np.maximum(hi, corners.max(0)) + 0.005
-        near = pb.getOverlappingObjects(lo.tolist(), hi.tolist(), physicsClientId=c) or []
+        near = sim.getOverlappingObjects(lo.tolist(), hi.tolist()) or []
         if not self.disturbed and all(body in (self.gripper, self.ghost) for body, _ in near):
             self._teleport(goal, R_goal)
             return
         q_goal = quat_of(R_goal)
-        pb.changeConstraint(self.constraint, goal.tolist(), q_goal, maxForce=s.gripper_force_n, physicsClientId=c)
+        sim.changeConstraint(self.constraint, goal.tolist(), q_goal, maxForce=s.gripper_force_n)
         last = T[:3, 3]
         for substep in range(1, s.max_substeps + 1):
-            pb.stepSimulation(physicsClientId=c)
+            sim.stepSimulation()
             if substep % 4 == 0:
-                pos, orn = pb.getBasePositionAndOrientation(self.gripper, physicsClientId=c)
+                pos, orn = sim.getBasePositionAndOrientation(self.gripper)
                 pos = np.array(pos)
                 angle = 2 * np.arccos(min(1.0, abs(float(np.dot(orn, q_goal)))))
                 reached = np.linalg.norm(pos - goal) < 0.003 and angle < 0.02
@@ -817,7 +815,7 @@ class ObjectFindingEnv(gym.Env):
         """Ground truth: surface points that face the camera, project into the image, and are unoccluded."""
         if not self.target_present:
             return
-        pos, orn = pb.getBasePositionAndOrientation(self.objects[0].body, physicsClientId=self.client)
+        pos, orn = self.sim.getBasePositionAndOrientation(self.objects[0].body)
         R = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
         world = self.target_points @ R.T + pos
         facing = np.sum((self.target_normals @ R.T) * (T_world_camera[:3, 3] - world), axis=1) > 0
@@ -836,7 +834,7 @@ class ObjectFindingEnv(gym.Env):
         s = self.s
         t0 = time.perf_counter()
         T_world_camera = camera_pose(self.gripper_pose(), s)
-        rgb, depth = render_rgbd(self.client, T_world_camera, self.K, s.image_width, s.image_height, s.near_m, s.far_m)
+        rgb, depth = render_rgbd(self.sim, T_world_camera, self.K, s.image_width, s.image_height, s.near_m, s.far_m)
         t1 = time.perf_counter()
         detections = add_detector_noise(detect_target(rgb), self.np_random, s)
         t2 = time.perf_counter()
@@ -909,9 +907,9 @@ class ObjectFindingEnv(gym.Env):
 
     def outside_view(self, width: int = 320, height: int = 240) -> np.ndarray:
         """The scene from a fixed oblique camera, with the gripper's ghost drawn in, (H, W, 3) uint8."""
-        s, c = self.s, self.client
+        s, sim = self.s, self.sim
         T_tool = self.gripper_pose()
-        pb.resetBasePositionAndOrientation(self.ghost, T_tool[:3, 3], quat_of(T_tool[:3, :3]), physicsClientId=c)
+        sim.resetBasePositionAndOrientation(self.ghost, T_tool[:3, 3], quat_of(T_tool[:3, :3]))
         eye = np.array([0.0, -1.3, 1.3]) * s.workspace_m
         forward = np.array([0.0, 0.0, 0.12 * s.workspace_m]) - eye
         forward /= np.linalg.norm(forward)
@@ -921,14 +919,14 @@ class ObjectFindingEnv(gym.Env):
         T[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)   # OpenCV axes: x right, y down
         T[:3, 3] = eye
         K = np.array([[height * 1.1, 0, width / 2], [0, height * 1.1, height / 2], [0, 0, 1]])
-        rgb, _ = render_rgbd(c, T, K, width, height, 0.05, 4 * s.workspace_m)
-        pb.resetBasePositionAndOrientation(self.ghost, [0, 0, -5], [0, 0, 0, 1], physicsClientId=c)
+        rgb, _ = render_rgbd(sim, T, K, width, height, 0.05, 4 * s.workspace_m)
+        sim.resetBasePositionAndOrientation(self.ghost, [0, 0, -5], [0, 0, 0, 1])
         return rgb
 
     def close(self):
-        if getattr(self, "client", None) is not None and pb.isConnected(self.client):
-            pb.disconnect(self.client)
-        self.client = None
+        if getattr(self, "sim", None) is not None:
+            self.sim.disconnect()
+            self.sim = None
 
 # ================================================================================================
 # Agents. An agent has reset(env) and act(obs, env) -> action in the env's Box(-1, 1, (6,)).

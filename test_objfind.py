@@ -248,7 +248,7 @@ def test_env_follows_the_gymnasium_api(ap_env):
 def test_same_seed_same_scene_and_state_different_seed_different(ap_env):
     def snapshot(seed):
         obs, info = ap_env.reset(seed=seed)
-        poses = [of.pb.getBasePositionAndOrientation(o.body, physicsClientId=ap_env.client)[0] for o in ap_env.objects]
+        poses = [ap_env.sim.getBasePositionAndOrientation(o.body)[0] for o in ap_env.objects]
         return obs, np.array(poses), ap_env.gripper_pose()
 
     a, b, c = snapshot(7), snapshot(7), snapshot(8)
@@ -295,7 +295,7 @@ def test_the_gripper_stays_in_the_workspace_and_never_passes_a_wall(ap_env):
     ap_env._teleport(np.array([0.2, 0.0, 0.05]), of.gripper_rotation(0.0, 0.0))
     for _ in range(6):                                    # low, straight into the +x wall
         ap_env.step(np.array([1.0, 0, -0.3, 0, 0, -1]))
-        lo, hi = of.pb.getAABB(ap_env.gripper, physicsClientId=ap_env.client)
+        lo, hi = ap_env.sim.getAABB(ap_env.gripper)
         assert hi[0] < half + 0.004                       # the wall's inner face is at x = half
     for _ in range(8):                                    # up and out over the -y wall
         ap_env.step(np.array([0.0, -1.0, 1.0, 0, 1.0, -1]))
@@ -317,9 +317,9 @@ def test_rendered_depth_matches_the_camera_model(ap_env):
     """A cube straight below the camera: its top face at the expected depth and pixel."""
     ap_env.reset(seed=3)
     target = ap_env.objects[0]
-    pos, _ = of.pb.getBasePositionAndOrientation(target.body, physicsClientId=ap_env.client)
+    pos, _ = ap_env.sim.getBasePositionAndOrientation(target.body)
     T_camera = looking_down(pos[2] + 0.25, pos[:2])
-    rgb, depth = of.render_rgbd(ap_env.client, T_camera, K, 80, 60, 0.01, 1.2)
+    rgb, depth = of.render_rgbd(ap_env.sim, T_camera, K, 80, 60, 0.01, 1.2)
     top = 0.25 - of.Settings.object_size_m / 2
     assert abs(depth[30, 40] - top) < 0.003
     red = of.detect_target(rgb) if ap_env.target_present else None
@@ -330,7 +330,7 @@ def test_rendered_depth_matches_the_camera_model(ap_env):
 
 def test_target_seen_counts_only_points_that_face_the_camera(ap_env):
     seed, *_ = seed_with(ap_env, target_present=True)
-    pos, _ = of.pb.getBasePositionAndOrientation(ap_env.objects[0].body, physicsClientId=ap_env.client)
+    pos, _ = ap_env.sim.getBasePositionAndOrientation(ap_env.objects[0].body)
     ap_env._teleport(np.array(pos) + [0, 0, 0.2], of.gripper_rotation(0.0, 0.0))
     ap_env.target_seen[:] = False
     ap_env._observe()
@@ -380,9 +380,9 @@ def test_piles_bury_the_target():
             if not (env.piles and env.target_present):
                 continue
             assert 15 <= len(env.objects) <= 75
-            c = env.client
-            target = np.array(of.pb.getBasePositionAndOrientation(env.objects[0].body, physicsClientId=c)[0])
-            others = np.array([of.pb.getBasePositionAndOrientation(o.body, physicsClientId=c)[0] for o in env.objects[1:]])
+            sim = env.sim
+            target = np.array(sim.getBasePositionAndOrientation(env.objects[0].body)[0])
+            others = np.array([sim.getBasePositionAndOrientation(o.body)[0] for o in env.objects[1:]])
             near = np.linalg.norm(others[:, :2] - target[:2], axis=1) < 0.06
             buried += bool(np.any(others[near, 2] > target[2] + 0.02))
             assert target[2] < 0.03                                 # on the floor, at the bottom
@@ -395,13 +395,13 @@ def test_a_push_moves_objects():
     env = of.ObjectFindingEnv("ip", "cubes")
     try:
         seed_with(env, target_present=True)
-        c = env.client
-        before = np.array([of.pb.getBasePositionAndOrientation(o.body, physicsClientId=c)[0] for o in env.objects])
+        sim = env.sim
+        before = np.array([sim.getBasePositionAndOrientation(o.body)[0] for o in env.objects])
         target = before[0]
         env._teleport(target + [-0.15, 0, 0.01], of.gripper_rotation(0.0, 0.0))
         for _ in range(5):                               # yaw 0: +x is forward
             env.step(np.array([1.0, 0, 0, 0, 0, -1]))
-        after = np.array([of.pb.getBasePositionAndOrientation(o.body, physicsClientId=c)[0] for o in env.objects])
+        after = np.array([sim.getBasePositionAndOrientation(o.body)[0] for o in env.objects])
         assert np.linalg.norm(after[0] - target) > 0.03  # the target was pushed along
         assert np.count_nonzero(np.linalg.norm(after - before, axis=1) > 0.01) >= 2
     finally:
