@@ -46,7 +46,6 @@ def _import_quietly(name: str):
 
 
 pb = _import_quietly("pybullet")
-from pybullet_utils.bullet_client import BulletClient  # noqa: E402  (after pybullet's quiet import)
 
 # ================================================================================================
 # Settings: Table I presets and the constants of Sec. IV-A. Lengths in metres, angles in radians.
@@ -158,7 +157,8 @@ def detect_target(rgb: np.ndarray) -> np.ndarray:
 
 
 def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, s: Settings) -> np.ndarray:
-    """Sec. III-C: true detections lose Exp(lambda); a random 2 % of pixels become Exp(lambda) false positives."""
+    """Sec. III-C: true detections lose an Exp(lambda) sample; a random 2 % of pixels become false
+    positives valued Exp(lambda)."""
     noisy = detections - detections * rng.exponential(1.0 / s.noise_rate, detections.shape)
     n_false = int(round(s.false_positive_share * detections.size))
     flat = noisy.reshape(-1)
@@ -243,8 +243,9 @@ class TSDFVolume:
             points = np.concatenate(points)
             if len(points) == 0:
                 continue
-            lo = np.clip(np.floor((points.min(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int), 0, self.shape[:2])
-            hi = np.clip(np.ceil((points.max(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int), 0, self.shape[:2])
+            lo = np.floor((points.min(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int)
+            hi = np.ceil((points.max(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int)
+            lo, hi = np.clip(lo, 0, self.shape[:2]), np.clip(hi, 0, self.shape[:2])
             if np.all(hi > lo):
                 boxes.append((slice(lo[0], hi[0]), slice(lo[1], hi[1]), slice(k0, k1)))
         return boxes
@@ -269,7 +270,8 @@ class TSDFVolume:
             d = [ax[b] - t[i] for i, (ax, b) in enumerate(zip(self.axes, box))]  # 1-D offsets from the camera
 
             def along_box(row):
-                return (row[0] * d[0])[:, None, None] + (row[1] * d[1])[None, :, None] + (row[2] * d[2])[None, None, :]
+                return ((row[0] * d[0])[:, None, None] + (row[1] * d[1])[None, :, None]
+                        + (row[2] * d[2])[None, None, :])
 
             z = along_box(P[2])                  # (a, b, c) depth of each voxel along the optical axis
             u = along_box(P[0]) / z
@@ -432,7 +434,8 @@ def quat_of(R: np.ndarray) -> list:
     """pybullet quaternion (x, y, z, w) of a rotation matrix."""
     w = np.sqrt(max(1e-12, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
     if w > 1e-3:
-        return [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w]
+        return [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w),
+                (R[1, 0] - R[0, 1]) / (4 * w), w]
     i = int(np.argmax(np.diag(R)))
     j, k = (i + 1) % 3, (i + 2) % 3
     q = np.zeros(4)
@@ -465,7 +468,8 @@ def prism_mesh(side: float, length: float) -> tuple[np.ndarray, np.ndarray]:
 def cylinder_mesh(radius: float, height: float, segments: int = 16) -> tuple[np.ndarray, np.ndarray]:
     a = np.linspace(0, 2 * np.pi, segments, endpoint=False)
     ring = np.stack([radius * np.cos(a), radius * np.sin(a)], 1)
-    v = np.concatenate([np.c_[ring, np.full(segments, -height / 2)], np.c_[ring, np.full(segments, height / 2)],
+    v = np.concatenate([np.c_[ring, np.full(segments, -height / 2)],
+                        np.c_[ring, np.full(segments, height / 2)],
                         [[0, 0, -height / 2], [0, 0, height / 2]]])
     i = np.arange(segments)
     j = (i + 1) % segments
@@ -528,7 +532,7 @@ class SceneObject:
 
 
 def make_object(sim, scene: str, size: float, rng: np.random.Generator, rgba) -> SceneObject:
-    """One object of a scene kind, primitives scaled to `size`, created at the origin; the caller places it."""
+    """One object of a scene kind (primitives scaled to `size`) created at the origin, to be placed."""
     kind = "cube" if scene == "cubes" else None
     if scene in ("fixed-primitives", "variable-primitives"):
         kind = ("cube", "cuboid", "cylinder", "prism")[rng.integers(4)]
@@ -573,6 +577,19 @@ def make_object(sim, scene: str, size: float, rng: np.random.Generator, rgba) ->
     return SceneObject(body, v, f, float(np.linalg.norm(v[:, :2], axis=1).max()), float(-v[:, 2].min()))
 
 
+class Simulator:
+    """One pybullet physics client: `sim.stepSimulation()` stands for
+    `pb.stepSimulation(physicsClientId=client)`, so every env owns its own world."""
+
+    def __init__(self):
+        self.client = pb.connect(pb.DIRECT)
+
+    def __getattr__(self, name):
+        bound = functools.partial(getattr(pb, name), physicsClientId=self.client)
+        setattr(self, name, bound)    # cached: later calls skip __getattr__
+        return bound
+
+
 class ObjectFindingEnv(gym.Env):
     """The object finding task as a Gymnasium environment (Sec. III-B, III-C).
 
@@ -599,7 +616,7 @@ class ObjectFindingEnv(gym.Env):
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (71,), np.float32)
         self.volume = TSDFVolume(s.workspace_m, s.volume_height_m, s.voxels_per_side, s.trunc_m, s.max_weight)
         self.K = intrinsics(s)
-        self.sim = BulletClient(pb.DIRECT)   # pybullet with this env's client id bound to every call
+        self.sim = Simulator()
         self.timings = dict.fromkeys(("physics", "render", "detect", "integrate", "encode"), 0.0)
         self.last_views: dict = {}   # the latest rgb, depth and detections, for demos and tests
 
@@ -613,14 +630,16 @@ class ObjectFindingEnv(gym.Env):
 
         def static_box(half_extents, pos, rgba):
             return sim.createMultiBody(0, sim.createCollisionShape(pb.GEOM_BOX, halfExtents=half_extents),
-                                      sim.createVisualShape(pb.GEOM_BOX, halfExtents=half_extents, rgbaColor=rgba),
+                                      sim.createVisualShape(pb.GEOM_BOX, halfExtents=half_extents,
+                                                            rgbaColor=rgba),
                                       pos)
 
         self.floor = static_box([half + 2 * thick] * 2 + [thick], [0, 0, -thick], (0.78, 0.76, 0.72, 1))
         wall_rgba = (0.55, 0.6, 0.68, 1)
-        self.walls = [static_box([thick, half + 2 * thick, s.wall_height_m / 2], [sx * (half + thick), 0, s.wall_height_m / 2], wall_rgba)
-                      for sx in (-1, 1)]
-        self.walls += [static_box([half, thick, s.wall_height_m / 2], [0, sy * (half + thick), s.wall_height_m / 2], wall_rgba)
+        wall_z = s.wall_height_m / 2
+        self.walls = [static_box([thick, half + 2 * thick, wall_z], [sx * (half + thick), 0, wall_z],
+                                 wall_rgba) for sx in (-1, 1)]
+        self.walls += [static_box([half, thick, wall_z], [0, sy * (half + thick), wall_z], wall_rgba)
                        for sy in (-1, 1)]
         # The gripper (GRIPPER_BOXES). The wrist camera must not see it, so the outside view draws a ghost.
         boxes = GRIPPER_BOXES
@@ -689,7 +708,8 @@ class ObjectFindingEnv(gym.Env):
             spots.sort(key=lambda t: t[0])
             for i, (_, (x, y, layer)) in zip(members, spots):
                 jitter = rng.normal(0, 0.1 * spacing, 2)
-                xyz = np.r_[centre + spacing * np.array([x, y]) + jitter, objects[i].half_height_m + 0.002 + layer * step_z]
+                z = objects[i].half_height_m + 0.002 + layer * step_z
+                xyz = np.r_[centre + spacing * np.array([x, y]) + jitter, z]
                 poses[i] = (xyz, rng.uniform(-np.pi, np.pi))
         return poses
 
@@ -717,22 +737,26 @@ class ObjectFindingEnv(gym.Env):
         s, sim = self.s, self.sim
         sim.resetSimulation()
         sim.setGravity(0, 0, -9.81)
-        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / s.physics_hz, numSolverIterations=s.solver_iterations)
+        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / s.physics_hz,
+                                      numSolverIterations=s.solver_iterations)
         self._build_static()
         count, piles = self._object_count(rng)
         self.target_present = bool(rng.random() >= s.no_target_prob)
         self.objects = []
         for i in range(count):
-            rgba = TARGET_RGBA if (i == 0 and self.target_present) else OTHER_RGBA[rng.integers(len(OTHER_RGBA))]
+            is_target = i == 0 and self.target_present
+            rgba = TARGET_RGBA if is_target else OTHER_RGBA[rng.integers(len(OTHER_RGBA))]
             self.objects.append(make_object(sim, self.scene, s.object_size_m, rng, rgba))
-        poses = self._pile_positions(self.objects, rng) if piles else self._scatter_positions(self.objects, rng)
+        place = self._pile_positions if piles else self._scatter_positions
+        poses = place(self.objects, rng)
         for obj, (xyz, yaw) in zip(self.objects, poses):
             sim.resetBasePositionAndOrientation(obj.body, xyz, pb.getQuaternionFromEuler([0, 0, yaw]))
         self._settle(480 if piles else 240)
         self.piles, self.disturbed = piles, False
         if self.target_present:
             target = self.objects[0]
-            self.target_points, self.target_normals = sample_surface(target.vertices, target.faces, s.surface_points, rng)
+            self.target_points, self.target_normals = sample_surface(target.vertices, target.faces,
+                                                                     s.surface_points, rng)
         else:
             self.target_points = self.target_normals = np.zeros((0, 3))
         self.target_seen = np.zeros(len(self.target_points), bool)
@@ -827,14 +851,16 @@ class ObjectFindingEnv(gym.Env):
         H, W = depth_m.shape
         inside = (z > self.s.near_m) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         rendered = depth_m[np.clip(v, 0, H - 1), np.clip(u, 0, W - 1)]
-        self.target_seen |= facing & inside & (rendered > 0) & (np.abs(rendered - z) < self.s.seen_depth_tol_m)
+        unoccluded = (rendered > 0) & (np.abs(rendered - z) < self.s.seen_depth_tol_m)
+        self.target_seen |= facing & inside & unoccluded
 
     def _observe(self) -> int:
         """Render the wrist camera, detect, add noise, integrate; returns newly observed voxels."""
         s = self.s
         t0 = time.perf_counter()
         T_world_camera = camera_pose(self.gripper_pose(), s)
-        rgb, depth = render_rgbd(self.sim, T_world_camera, self.K, s.image_width, s.image_height, s.near_m, s.far_m)
+        rgb, depth = render_rgbd(self.sim, T_world_camera, self.K, s.image_width, s.image_height,
+                                 s.near_m, s.far_m)
         t1 = time.perf_counter()
         detections = add_detector_noise(detect_target(rgb), self.np_random, s)
         t2 = time.perf_counter()
@@ -849,7 +875,8 @@ class ObjectFindingEnv(gym.Env):
         t0 = time.perf_counter()
         T = self.gripper_pose()
         yaw, roll = yaw_roll_of(T[:3, :3])
-        state = encode_state(self.volume, T[:3, 3], yaw, roll, T[2, 3], self.s.crop_m, self.s.nominal_target_voxels)
+        state = encode_state(self.volume, T[:3, 3], yaw, roll, T[2, 3], self.s.crop_m,
+                             self.s.nominal_target_voxels)
         self.timings["encode"] = 1e3 * (time.perf_counter() - t0)
         return state
 
@@ -1051,15 +1078,18 @@ def bins_panel(state: np.ndarray) -> np.ndarray:
                     cell(x0 + (2 - b) * third, y0 + (2 - a) * third, third, values[OUTER_BIN[3 * a + b]])
         for c in range(3):
             for d in range(3):
-                cell(x0 + third + (2 - d) * third // 3, y0 + third + (2 - c) * third // 3, third // 3, values[8 + 3 * c + d])
-        cv2.putText(panel, name, (x0 + size + 2 - 96, y0 - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-    return label(panel, f"state bins (tsdf sum {state[68]:.2f}, det sum {state[69]:.2f}, roll {state[70]:.2f})")
+                small = third // 3
+                cell(x0 + third + (2 - d) * small, y0 + third + (2 - c) * small, small, values[8 + 3 * c + d])
+        cv2.putText(panel, name, (x0 + 2, y0 - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    sums = f"tsdf sum {state[68]:.2f}, det sum {state[69]:.2f}, roll {state[70]:.2f}"
+    return label(panel, f"state bins ({sums})")
 
 
 def demo_frame(env: ObjectFindingEnv, state: np.ndarray, text: str) -> np.ndarray:
     """The four pictures of one moment side by side, (240, 1280, 3) RGB."""
     views = env.last_views
-    return np.concatenate([label(env.outside_view(*PANEL), text), wrist_panel(views["rgb"], views["detections"]),
+    return np.concatenate([label(env.outside_view(*PANEL), text),
+                           wrist_panel(views["rgb"], views["detections"]),
                            volume_panel(env.volume, env.gripper_pose()), bins_panel(state)], axis=1)
 
 
@@ -1073,7 +1103,8 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path) -
     done = False
     while not done:
         state, reward, done, _, info = env.step(agent.act(state, env))
-        status = f"step {info['steps']}: seen {info['target_seen_fraction']:.2f}, explored {info['explored_fraction']:.2f}"
+        status = (f"step {info['steps']}: seen {info['target_seen_fraction']:.2f}, "
+                  f"explored {info['explored_fraction']:.2f}")
         if done:
             status += "  SUCCESS" if info["success"] else "  FAILURE"
         frames.append(demo_frame(env, state, status))

@@ -71,7 +71,9 @@ def test_presets_follow_table_one():
     assert (ap.min_objects, ap.max_objects, ap.piles, ap.workspace_m, ap.horizon) == (5, 25, 0, 0.6, 130)
     assert (large.min_objects, large.max_objects, large.workspace_m, large.horizon) == (10, 40, 1.2, 500)
     assert (ip.min_objects, ip.max_objects, ip.piles, ip.exploration_ratio) == (15, 75, 3, 0.25)
-    assert all(s.no_target_prob == 0.10 and s.trunc_m == 0.04 and s.max_weight == 2 for s in of.TASKS.values())
+    for s in of.TASKS.values():
+        paper = (s.no_target_prob, s.trunc_m, s.max_weight, s.max_step_m, s.max_turn_rad, s.detection_reward)
+        assert paper == (0.1, 0.04, 2, 0.06, 0.15, 150)
     with pytest.raises(dataclasses.FrozenInstanceError):
         ap.horizon = 10
 
@@ -85,7 +87,8 @@ def test_detector_finds_red_under_any_shading_and_nothing_else():
     image = np.zeros((40, 10 * (1 + len(of.OTHER_RGBA)), 3), np.uint8)
     for i, rgba in enumerate((of.TARGET_RGBA,) + of.OTHER_RGBA):
         for row, shade in enumerate(np.linspace(0.35, 1.0, 4)):   # lit to shadowed faces
-            image[10 * row:10 * row + 10, 10 * i:10 * i + 10] = (np.array(rgba[:3]) * shade * 255).astype(np.uint8)
+            colour = (np.array(rgba[:3]) * shade * 255).astype(np.uint8)
+            image[10 * row:10 * row + 10, 10 * i:10 * i + 10] = colour
     detections = of.detect_target(image)
     assert detections.dtype == np.float32 and detections.shape == image.shape[:2]
     assert detections[:, :10].min() == 1.0
@@ -116,7 +119,7 @@ def test_tsdf_of_a_plane_at_a_known_depth():
     assert abs(zero_crossing(volume) - 0.1) < volume.voxel_m
     t, w = column(volume, volume.tsdf), column(volume, volume.weight)
     ks = np.arange(len(t))
-    in_front = (z_of(volume, ks) > 0.1 + 0.04) & (z_of(volume, ks) < 0.25)   # (the top is outside the frustum)
+    in_front = (z_of(volume, ks) > 0.1 + 0.04) & (z_of(volume, ks) < 0.25)   # the top is outside the frustum
     assert np.all(w[in_front] > 0) and np.allclose(t[in_front], 1.0)       # free space, truncated
     behind = z_of(volume, ks) < 0.1 - 0.04 - volume.voxel_m
     assert np.all(w[behind] == 0) and np.all(t[behind] == 0)                # never seen
@@ -262,7 +265,7 @@ def test_rewards_of_each_termination_kind(ap_env):
     terminate, stay = np.array([0, 0, 0, 0, 0, 1.0]), np.array([0, 0, 0, 0, 0, -1.0])
     seed, *_ = seed_with(ap_env, target_present=True, target_observed=False)
     _, reward, done, truncated, info = ap_env.step(terminate)        # claims too early
-    assert (reward, done, truncated, info["success"]) == (-s.time_penalty - s.detection_reward, True, False, False)
+    assert (reward, done, truncated, info["success"]) == (-1 - 150, True, False, False)
     ap_env.reset(seed=seed)
     ap_env.target_seen[:] = True                                       # as if the target had been seen
     _, reward, done, _, info = ap_env.step(terminate)
@@ -278,7 +281,7 @@ def test_rewards_of_each_termination_kind(ap_env):
     finally:
         ap_env.s = s
     assert rewards == [-s.time_penalty] * 2                           # no motion, nothing new seen
-    assert (reward, done, truncated, info["success"]) == (-s.time_penalty - s.detection_reward, True, False, False)
+    assert (reward, done, truncated, info["success"]) == (-1 - 150, True, False, False)
 
 
 def test_exploration_reward_is_positive_and_never_exceeds_the_time_penalty(ap_env):
