@@ -30,6 +30,7 @@ import cv2
 import gymnasium as gym
 import numpy as np
 import pybullet_data
+from tqdm import tqdm
 
 
 def _import_quietly(name: str):
@@ -1204,13 +1205,21 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
              f"best of {repeats} runs):", "",
              "| task / scene | " + " | ".join(stages) + " |", "|---" * (len(stages) + 1) + "|"]
     throughput = []
-    for task in ("ap", "ip"):
-        means = min((bench_stages(task, steps) for _ in range(repeats)), key=lambda m: m["step"])
-        lines.append(f"| {task} / cubes | " + " | ".join(f"{means[s]:.2f}" for s in stages) + " |")
-        rates = [max(bench_throughput(task, steps * max(1, n), n) for _ in range(repeats))
-                 for n in (0, workers, 2 * workers)]
-        rates.insert(1, max(independent_throughput(task, steps, workers) for _ in range(repeats)))
-        throughput.append(f"| {task} / cubes | " + " | ".join(f"{r:.0f}" for r in rates) + " |")
+    with tqdm(total=2 * 5 * repeats, desc="bench", unit="run", file=sys.stderr) as bar:
+        def best(measure, key=max):
+            results = []
+            for _ in range(repeats):
+                results.append(measure())
+                bar.update()
+            return key(results)
+
+        for task in ("ap", "ip"):
+            means = best(lambda: bench_stages(task, steps), key=lambda ms: min(ms, key=lambda m: m["step"]))
+            lines.append(f"| {task} / cubes | " + " | ".join(f"{means[s]:.2f}" for s in stages) + " |")
+            rates = [best(lambda: bench_throughput(task, steps, 0)),
+                     best(lambda: independent_throughput(task, steps, workers))]
+            rates += [best(lambda: bench_throughput(task, steps * n, n)) for n in (workers, 2 * workers)]
+            throughput.append(f"| {task} / cubes | " + " | ".join(f"{r:.0f}" for r in rates) + " |")
     lines += ["", f"Env steps per second (resets included, best of {repeats} runs), {os.cpu_count()} cores. "
               "Independent processes each step their own env; lock-step workers step "
               "through gymnasium.vector.AsyncVectorEnv, one env per process:", "",
