@@ -396,6 +396,23 @@ def yaw_roll_of(R_world_tool: np.ndarray) -> tuple[float, float]:
     return float(np.arctan2(M[1, 0], M[0, 0])), float(np.arctan2(M[2, 1], M[2, 2]))
 
 
+def action_goal(T_world_tool: np.ndarray, action: np.ndarray, s: Settings) -> np.ndarray:
+    """The pose (T_world_tool) an action asks for: displacements in the yaw frame, limits applied.
+
+    Roll is bounded, the position stays inside the volume's box and the fingertips above the floor.
+    """
+    yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
+    roll = float(np.clip(roll + action[3] * s.max_turn_rad, -s.max_roll_rad, s.max_roll_rad))
+    yaw = float(yaw + action[4] * s.max_turn_rad)
+    half = s.workspace_m / 2
+    floor_z = 0.005 + FINGER_REACH_M * abs(np.sin(roll))
+    goal = np.eye(4)
+    goal[:3, :3] = gripper_rotation(yaw, roll)
+    goal[:3, 3] = np.clip(T_world_tool[:3, 3] + rotation_z(yaw) @ (np.asarray(action[:3]) * s.max_step_m),
+                          [-half, -half, floor_z], [half, half, s.ceiling_m])
+    return goal
+
+
 def camera_pose(T_world_tool: np.ndarray, s: Settings) -> np.ndarray:
     """T_world_camera: maps points in the wrist camera's frame to the world.
 
@@ -802,14 +819,8 @@ class ObjectFindingEnv(gym.Env):
         """
         s, sim = self.s, self.sim
         T = self.gripper_pose()
-        yaw, roll = yaw_roll_of(T[:3, :3])
-        roll = float(np.clip(roll + action[3] * s.max_turn_rad, -s.max_roll_rad, s.max_roll_rad))
-        yaw = float(yaw + action[4] * s.max_turn_rad)
-        R_goal = gripper_rotation(yaw, roll)
-        half = s.workspace_m / 2
-        floor_z = 0.005 + FINGER_REACH_M * abs(np.sin(roll))     # keep the fingertips above the floor
-        goal = np.clip(T[:3, 3] + rotation_z(yaw) @ (action[:3] * s.max_step_m),
-                       [-half, -half, floor_z], [half, half, s.ceiling_m])
+        T_goal = action_goal(T, action, s)
+        goal, R_goal = T_goal[:3, 3], T_goal[:3, :3]
         lo, hi = sim.getAABB(self.gripper)
         corners = GRIPPER_CORNERS @ R_goal.T + goal
         lo = np.minimum(lo, corners.min(0)) - 0.005
