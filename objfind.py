@@ -1243,10 +1243,161 @@ class GridExhaustiveSearch:
 
 
 AGENTS = {"random": RandomAgent, "scripted": ScriptedAgent, "gnbv": GreedyNextBestView,
-          "ges": GridExhaustiveSearch}
+          "ges": GridExhaustiveSearch}   # the agents `demo` can show
 
 # ================================================================================================
-# Evaluation helpers: one episode, and the pictures of it (outside, wrist camera, volume, state).
+# Evaluation (Sec. IV-C): paired episodes, success with a Wilson interval, the Table II layout.
+# ================================================================================================
+
+PAPER_TABLE_II = {   # (agent, task): {scene: (success %, average steps)}, 1000 episodes each
+    ("gnbv", "ap"): {"cubes": (93.3, 8.59), "fixed-primitives": (94.4, 8.48), "variable-primitives": (94.7, 8.26),
+                     "random-shapes": (93.7, 8.62), "object-models": (94.9, 13.25)},
+    ("gnbv", "ap-large"): {"cubes": (91.6, 31.89)},
+    ("a3de", "ap"): {"cubes": (98.2, 4.14), "fixed-primitives": (97.9, 3.95), "variable-primitives": (96.5, 4.29),
+                     "random-shapes": (97.1, 4.35), "object-models": (99.8, 4.38)},
+    ("a3de", "ap-large"): {"cubes": (96.3, 14.57)},
+    ("ges", "ip"): {"cubes": (99.9, 54.79), "fixed-primitives": (99.6, 51.72), "variable-primitives": (66.8, 70.84),
+                    "random-shapes": (89.2, 54.42), "object-models": (35.1, 93.15)},
+    ("i3de", "ip"): {"cubes": (88.0, 26.86), "fixed-primitives": (90.5, 21.22), "variable-primitives": (85.0, 30.08),
+                     "random-shapes": (89.5, 20.82), "object-models": (82.1, 29.79)},
+}
+class UsageError(Exception):
+    """Bad input (an unknown agent, a missing or foreign checkpoint): one line, exit status 2."""
+
+
+def read_checkpoint(path: Path) -> dict:
+    """Load an objfind checkpoint with torch.load(weights_only=True), or explain in one line why not."""
+    if not path.is_file():
+        raise UsageError(f"checkpoint {str(path)!r} not found")
+    import torch
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:   # truncated, not a torch file, or unsafe to unpickle
+        raise UsageError(f"{str(path)!r} is not a readable checkpoint ({type(error).__name__})") from None
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != "objfind-ppo":
+        raise UsageError(f"{str(path)!r} is not an objfind checkpoint")
+    return checkpoint
+
+
+BASELINES = {"random": RandomAgent, "scripted": ScriptedAgent, "gnbv": GreedyNextBestView,
+             "ges": GridExhaustiveSearch}
+LEARNED = ("a3de", "i3de")
+
+
+def make_agent(name: str, seed: int, weights: Path | None = None):
+    """A fresh agent for one episode, its randomness seeded by the episode's seed."""
+    if name in LEARNED:
+        read_checkpoint(weights or Path("weights") / f"{name}.pt")
+        raise UsageError(f"{name}: the PPO policy that runs these weights is not part of objfind yet")
+    agent = BASELINES[name]()
+    if hasattr(agent, "rng"):
+        agent.rng = np.random.default_rng(seed)
+    return agent
+
+
+def run_episode(env: ObjectFindingEnv, agent, seed: int) -> dict:
+    """One episode on scene `seed`; returns its row of the evaluation CSV."""
+    obs, info = env.reset(seed=seed)
+    agent.reset(env)
+    decide_s, done = 0.0, False
+    while not done:
+        t0 = time.perf_counter()
+        action = agent.act(obs, env)
+        decide_s += time.perf_counter() - t0
+        obs, reward, done, _, info = env.step(action)
+    return dict(seed=seed, target_present=info["target_present"], success=info["success"], steps=info["steps"],
+                target_seen_fraction=round(info["target_seen_fraction"], 4),
+                explored_fraction=round(info["explored_fraction"], 4),
+                decision_ms=round(1e3 * decide_s / info["steps"], 3))
+
+
+def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list) -> list:
+    """Episodes of one worker process (one env, one fresh agent per episode)."""
+    env = ObjectFindingEnv(task, scene)
+    try:
+        return [run_episode(env, make_agent(agent_name, seed), seed) for seed in seeds]
+    finally:
+        env.close()
+
+
+def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 0, workers: int = 1,
+             progress: bool = True, weights: Path | None = None) -> list:
+    """Paired episodes: episode i is scene seed + i for every agent. Rows in seed order."""
+    make_agent(agent_name, seed, weights)   # fail early, in the parent, on an agent that cannot run
+    seeds = list(range(seed, seed + episodes))
+    chunks = [seeds[i:i + 5] for i in range(0, episodes, 5)]
+    bar = tqdm(total=episodes, desc=f"{agent_name} {task}/{scene}", unit="ep", disable=not progress,
+               file=sys.stderr)
+    rows = []
+    if workers <= 1:
+        for chunk in chunks:
+            rows += evaluate_chunk(agent_name, task, scene, chunk)
+            bar.update(len(chunk))
+    else:
+        import multiprocessing
+        with multiprocessing.get_context("spawn").Pool(workers) as pool:
+            jobs = [pool.apply_async(evaluate_chunk, (agent_name, task, scene, c)) for c in chunks]
+            for job in jobs:
+                rows += job.get()
+                bar.update(len(rows) - bar.n)
+    bar.close()
+    return sorted(rows, key=lambda r: r["seed"])
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a success rate: sound near 0 % and 100 %, unlike mean +- 1.96 sd."""
+    if n == 0:
+        return 0.0, 0.0
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
+
+
+def summarise(rows: list) -> dict:
+    """Success % (with its 95 % interval), mean steps (with its), no-target success, decision time."""
+    success = np.array([r["success"] for r in rows], bool)
+    steps = np.array([r["steps"] for r in rows], float)
+    absent = np.array([not r["target_present"] for r in rows], bool)
+    lo, hi = wilson_interval(int(success.sum()), len(rows))
+    steps_half = 1.96 * steps.std(ddof=1) / np.sqrt(len(rows)) if len(rows) > 1 else 0.0
+    return dict(episodes=len(rows), success=100 * success.mean(), success_lo=100 * lo, success_hi=100 * hi,
+                steps=steps.mean(), steps_half=steps_half, no_target_episodes=int(absent.sum()),
+                no_target_success=100 * success[absent].mean() if absent.any() else float("nan"),
+                decision_ms=float(np.mean([r["decision_ms"] for r in rows])))
+
+
+def write_csv(rows: list, path: Path) -> None:
+    """Every episode's row, written to a temporary file and renamed, so a killed run leaves no half file."""
+    import csv
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
+
+
+def table_markdown(cells: dict, episodes: int) -> str:
+    """Table II: ours ("success / steps") beside the paper's, per agent and scene kind."""
+    columns = [("ap", s) for s in SCENES[:1]] + [("ap-large", "cubes")] + [("ap", s) for s in SCENES[1:]]
+    header = ["agent", "cubes", "cubes, large", "fixed prim.", "variable prim.", "random shapes", "object models"]
+    lines = [f"Success % / average steps over {episodes} paired episodes per cell; the paper's below ours.", "",
+             "| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    for agent, interactive in (("gnbv", False), ("a3de", False), ("ges", True), ("i3de", True)):
+        ours, paper = [], []
+        for task, scene in columns:
+            task = "ip" if interactive and task == "ap" else task
+            cell = cells.get((agent, task, scene))
+            published = PAPER_TABLE_II.get((agent, task), {}).get(scene)
+            ours.append("-" if cell is None else f"{cell['success']:.1f} / {cell['steps']:.2f}")
+            paper.append("-" if published is None else f"{published[0]:.1f} / {published[1]:.2f}")
+        lines.append(f"| {agent.upper()} (ours) | " + " | ".join(ours) + " |")
+        lines.append(f"| {agent.upper()} (paper) | " + " | ".join(paper) + " |")
+    return "\n".join(lines)
+
+# ================================================================================================
+# Pictures of an episode for the demo (outside, wrist camera, volume, state).
 # ================================================================================================
 
 PANEL = (320, 240)   # width, height of one picture in the demo
@@ -1466,12 +1617,8 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
     return "\n".join(lines + throughput)
 
 # ================================================================================================
-# Command line: demo and bench. Bad input ends with one line and exit status 2.
+# Command line: demo, eval and bench. Bad input ends with one line and exit status 2.
 # ================================================================================================
-
-
-class UsageError(Exception):
-    """Bad input from the command line: reported in one line, exit status 2."""
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -1517,6 +1664,58 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def output_file(text: str) -> Path:
+    path = Path(text)
+    if not path.parent.is_dir():
+        raise UsageError(f"the folder of the output file {text!r} does not exist")
+    return path
+
+
+def print_summary(agent: str, task: str, scene: str, summary: dict) -> None:
+    s = summary
+    print(f"{agent} on {task}/{scene}, {s['episodes']} episodes: success {s['success']:.1f} % "
+          f"[{s['success_lo']:.1f}, {s['success_hi']:.1f}], steps {s['steps']:.2f} +- {s['steps_half']:.2f}, "
+          f"no-target success {s['no_target_success']:.1f} % of {s['no_target_episodes']}, "
+          f"decision {s['decision_ms']:.2f} ms/step")
+
+
+def table_cells():
+    """The cells of Table II as (agent, task, scene)."""
+    return [(agent, task, scene) for (agent, task), scenes in PAPER_TABLE_II.items() for scene in scenes]
+
+
+def cmd_eval(args) -> int:
+    if args.table:
+        out = output_dir(args.out or "results")
+        out.mkdir(exist_ok=True)
+        cells = {}
+        for agent, task, scene in table_cells():
+            csv_path = out / f"{agent}-{task}-{scene}.csv"
+            try:
+                rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers)
+            except UsageError as error:
+                print(f"{agent} on {task}/{scene}: - ({error})")
+                continue
+            write_csv(rows, csv_path)
+            cells[(agent, task, scene)] = summarise(rows)
+            print_summary(agent, task, scene, cells[(agent, task, scene)])
+        markdown = table_markdown(cells, args.episodes)
+        (out / "table2.md").write_text(markdown + "\n")
+        print(markdown)
+        print(f"wrote {out / 'table2.md'} and one CSV per cell in {out}")
+        return 0
+    if args.agent is None:
+        raise UsageError("eval needs --agent or --table")
+    csv_path = output_file(args.out) if args.out else None
+    weights = Path(args.weights) if args.weights else None
+    rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, weights=weights)
+    print_summary(args.agent, args.task, args.scene, summarise(rows))
+    if csv_path:
+        write_csv(rows, csv_path)
+        print(f"wrote {csv_path}")
+    return 0
+
+
 def cmd_bench(args) -> int:
     print(run_bench(args.steps, args.workers, args.repeats))
     return 0
@@ -1532,6 +1731,17 @@ def build_parser() -> ArgumentParser:
     demo.add_argument("--seed", type=count_arg, default=0)
     demo.add_argument("--out", default="out", help="output folder (its parent must exist)")
     demo.set_defaults(func=cmd_demo)
+    evaluation = commands.add_parser("eval", help="paired evaluation episodes, or the whole Table II")
+    evaluation.add_argument("--agent", choices=list(BASELINES) + list(LEARNED))
+    evaluation.add_argument("--table", action="store_true", help="every cell of Table II beside the paper")
+    evaluation.add_argument("--task", choices=list(TASKS), default="ap")
+    evaluation.add_argument("--scene", choices=SCENES, default="cubes")
+    evaluation.add_argument("--episodes", type=positive_arg, default=100)
+    evaluation.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1)
+    evaluation.add_argument("--seed", type=count_arg, default=0, help="episode i uses scene seed + i")
+    evaluation.add_argument("--weights", help="checkpoint of a learned agent (default weights/AGENT.pt)")
+    evaluation.add_argument("--out", help="CSV of every episode (with --table: a folder, default results)")
+    evaluation.set_defaults(func=cmd_eval)
     bench = commands.add_parser("bench", help="per-stage step time and env steps/s")
     bench.add_argument("--steps", type=positive_arg, default=300, help="steps per measurement")
     bench.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1)

@@ -496,3 +496,95 @@ def test_bench_stages_account_for_the_step():
     assert all(means[s] >= 0 for s in stages) and means["render"] > 0 and means["integrate"] > 0
     assert sum(means[s] for s in stages) <= means["step"] * 1.02      # the stages are parts of the step
     assert means["reset"] > 0
+
+
+# ------------------------------------------------------------------------------------------------
+# baselines and evaluation
+# ------------------------------------------------------------------------------------------------
+
+
+def test_two_opt_uncrosses_a_tour_and_returns_a_permutation():
+    square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    crossed = np.array([0, 2, 1, 3])                     # edges 0-2 and 1-3 cross
+    better = of.two_opt(square, crossed)
+    assert sorted(better) == [0, 1, 2, 3] and better[0] == 0
+    assert of.tour_length(square, better) == pytest.approx(4.0)
+    assert of.tour_length(square, crossed) > 4.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_two_opt_on_a_grid_is_within_five_percent_of_optimal(seed):
+    xs, ys = np.meshgrid(np.arange(6.0), np.arange(6.0))
+    points = np.stack([xs.ravel(), ys.ravel()], 1) * 0.06
+    start = of.GridExhaustiveSearch.nearest_neighbour(points, seed)
+    tour = of.two_opt(points, start)
+    assert sorted(tour) == list(range(36))
+    assert of.tour_length(points, tour) <= 1.05 * 36 * 0.06
+    path = of.two_opt(points, start, closed=False)       # a search route: the start stays first
+    assert path[0] == seed and of.tour_length(points, path, closed=False) <= of.tour_length(points, start, closed=False)
+
+
+def test_gnbv_prefers_a_view_of_unobserved_space(ap_env):
+    ap_env.reset(seed=3)
+    volume = ap_env.volume
+    volume.reset()
+    volume.weight[:50] = 1.0                             # the -x half of the workspace is known
+    volume.tsdf[:50] = 1.0
+    gnbv = of.GreedyNextBestView()
+    gnbv.reset(ap_env)
+    T = np.eye(4)
+    T[:3, :3] = of.gripper_rotation(0.0, 0.0)
+    toward_known, toward_unknown = T.copy(), T.copy()
+    toward_known[:3, 3] = [-0.15, 0.0, 0.3]
+    toward_unknown[:3, 3] = [0.15, 0.0, 0.3]
+    cameras = np.stack([of.camera_pose(P, ap_env.s) for P in (toward_known, toward_unknown)])
+    counts = gnbv.newly_observed(volume, cameras, np.zeros(3), ap_env.s.crop_m)
+    assert counts[1] > 10 * max(counts[0], 1)
+
+
+def test_ges_grid_spacing_is_one_step_and_covers_the_workspace():
+    env = of.ObjectFindingEnv("ip", "cubes")
+    try:
+        env.reset(seed=0)
+        ges = of.GridExhaustiveSearch()
+        ges.reset(env)
+        s = env.s
+        xs = np.unique(ges.nodes[:, 0])
+        assert np.allclose(np.diff(xs), s.max_step_m)
+        assert xs.min() - s.max_step_m / 2 == pytest.approx(-s.workspace_m / 2)
+        assert xs.max() + s.max_step_m / 2 == pytest.approx(s.workspace_m / 2)
+        assert sorted(ges.route) == list(range(len(ges.nodes)))
+        legs = np.linalg.norm(np.diff(ges.nodes[ges.route], axis=0), axis=1)
+        assert np.median(legs) == pytest.approx(s.max_step_m)
+    finally:
+        env.close()
+
+
+def test_wilson_interval():
+    lo, hi = of.wilson_interval(50, 100)
+    assert lo == pytest.approx(0.4038, abs=1e-3) and hi == pytest.approx(0.5962, abs=1e-3)
+    lo, hi = of.wilson_interval(10, 10)
+    assert hi == pytest.approx(1.0) and 0.6 < lo < 0.75
+
+
+def test_eval_writes_one_csv_row_per_episode(tmp_path):
+    out = tmp_path / "gnbv.csv"
+    assert of.main(["eval", "--agent", "gnbv", "--episodes", "3", "--workers", "1", "--seed", "5",
+                    "--out", str(out)]) == 0
+    lines = out.read_text().splitlines()
+    assert lines[0].startswith("seed,target_present,success,steps")
+    assert [line.split(",")[0] for line in lines[1:]] == ["5", "6", "7"]
+
+
+def test_eval_bad_agent_or_checkpoint_is_one_line_and_exit_two(tmp_path):
+    foreign = tmp_path / "foreign.pt"
+    foreign.write_text("not a checkpoint")
+    import torch
+    other = tmp_path / "other.pt"
+    torch.save({"state_dict": {}}, other)
+    for args in (["eval", "--agent", "nope"], ["eval", "--agent", "a3de", "--weights", str(tmp_path / "none.pt")],
+                 ["eval", "--agent", "a3de", "--weights", str(foreign)],
+                 ["eval", "--agent", "i3de", "--weights", str(other)], ["eval"]):
+        result = run_cli(*args)
+        assert result.returncode == 2, args
+        assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
