@@ -322,6 +322,13 @@ class TSDFVolume:
         w_old = weight[flat]
         newly = int(np.count_nonzero(w_old == 0))
         self.observed_count += newly
+        # Most voxels of a view are free space already known as free at full weight: averaging 1 into
+        # 1 changes nothing there, so they are dropped before the expensive updates.
+        same = (sdf >= self.trunc_m) & (w_old == self.max_weight)
+        same[same] = tsdf[flat[same]] == 1.0
+        if same.any():
+            keep = ~same
+            flat, sdf, pixel, w_old = flat[keep], sdf[keep], pixel[keep], w_old[keep]
         w_sum = w_old + 1.0
         tsdf[flat] = (tsdf[flat] * w_old + np.minimum(1.0, sdf * (1.0 / self.trunc_m))) / w_sum
         # detections as a truncated unsigned distance: the pixel's score, fading to 0 at trunc_m
@@ -342,7 +349,8 @@ class TSDFVolume:
         surface seen; a mark is dropped when carving or forgetting takes the detection away.
         """
         surface = self.target_surface.reshape(-1)
-        surface[flat] &= det_new > 0.1 * self.detection_threshold
+        if surface.any():
+            surface[flat] &= det_new > 0.1 * self.detection_threshold
         v, u = np.nonzero((detections > self.detection_threshold) & (depth_m > 0))
         if len(v) == 0:
             return
