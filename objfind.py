@@ -1405,6 +1405,19 @@ def write_csv(rows: list, path: Path) -> None:
     os.replace(tmp, path)
 
 
+def read_csv(path: Path, seeds: list) -> list | None:
+    """The rows of an earlier run of exactly these seeds, or None (then the cell is run again)."""
+    import csv
+    if not path.is_file():
+        return None
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if [int(r["seed"]) for r in rows] != list(seeds):
+        return None
+    kinds = dict(seed=int, target_present=lambda t: t == "True", success=lambda t: t == "True", steps=int)
+    return [{k: kinds.get(k, float)(v) for k, v in r.items()} for r in rows]
+
+
 def table_markdown(cells: dict, episodes: int) -> str:
     """Table II: ours ("success / steps") beside the paper's, per agent and scene kind."""
     columns = [("ap", s) for s in SCENES[:1]] + [("ap-large", "cubes")] + [("ap", s) for s in SCENES[1:]]
@@ -1718,12 +1731,15 @@ def cmd_eval(args) -> int:
         cells = {}
         for agent, task, scene in table_cells():
             csv_path = out / f"{agent}-{task}-{scene}.csv"
-            try:
-                rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers)
-            except UsageError as error:
-                print(f"{agent} on {task}/{scene}: - ({error})")
-                continue
-            write_csv(rows, csv_path)
+            # a cell finished by an earlier (perhaps interrupted) run of the same seeds is reused
+            rows = read_csv(csv_path, range(args.seed, args.seed + args.episodes))
+            if rows is None:
+                try:
+                    rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers)
+                except UsageError as error:
+                    print(f"{agent} on {task}/{scene}: - ({error})")
+                    continue
+                write_csv(rows, csv_path)
             cells[(agent, task, scene)] = summarise(rows)
             print_summary(agent, task, scene, cells[(agent, task, scene)])
         markdown = table_markdown(cells, args.episodes)

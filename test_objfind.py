@@ -588,3 +588,12 @@ def test_eval_bad_agent_or_checkpoint_is_one_line_and_exit_two(tmp_path):
         result = run_cli(*args)
         assert result.returncode == 2, args
         assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
+
+
+def test_eval_csv_round_trips_for_resumed_tables(tmp_path):
+    rows = [dict(seed=3, target_present=True, success=False, steps=7, target_seen_fraction=0.1,
+                 explored_fraction=0.5, decision_ms=1.5)]
+    path = tmp_path / "cell.csv"
+    of.write_csv(rows, path)
+    assert of.read_csv(path, [3]) == rows
+    assert of.read_csv(path, [4]) is None and of.read_csv(tmp_path / "none.csv", [3]) is None
