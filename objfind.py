@@ -614,7 +614,8 @@ def urdf_mesh(urdf_path: str) -> tuple[np.ndarray, np.ndarray]:
 # pybullet_data's household-like meshes with the global scaling that brings each near 5-8 cm
 OBJECT_MODELS = (("duck_vhacd.urdf", 0.6), ("teddy_vhacd.urdf", 0.6), ("objects/mug.urdf", 0.5),
                  ("lego/lego.urdf", 1.8), ("jenga/jenga.urdf", 0.5), ("soccerball.urdf", 0.055))
-RANDOM_SHAPES = 1000          # pybullet_data/random_urdfs/000 .. 999, the paper's footnote set
+# pybullet_data/random_urdfs/000 .. 999, the paper's footnote set, less 168 (its OBJ holds only NaN vertices)
+RANDOM_SHAPES = tuple(i for i in range(1000) if i != 168)
 RANDOM_SHAPE_SCALE = 0.5      # about 5-6 cm across
 
 
@@ -656,7 +657,7 @@ def make_object(sim, scene: str, size: float, rng: np.random.Generator, rgba) ->
     else:
         data = pybullet_data.getDataPath()
         if scene == "random-shapes":
-            i = int(rng.integers(RANDOM_SHAPES))
+            i = RANDOM_SHAPES[rng.integers(len(RANDOM_SHAPES))]
             path, scale = os.path.join(data, "random_urdfs", f"{i:03d}", f"{i:03d}.urdf"), RANDOM_SHAPE_SCALE
         else:
             name, scale = OBJECT_MODELS[rng.integers(len(OBJECT_MODELS))]

@@ -597,3 +597,13 @@ def test_eval_csv_round_trips_for_resumed_tables(tmp_path):
     of.write_csv(rows, path)
     assert of.read_csv(path, [3]) == rows
     assert of.read_csv(path, [4]) is None and of.read_csv(tmp_path / "none.csv", [3]) is None
+
+
+def test_every_random_shape_and_object_model_has_finite_geometry():
+    import os
+    data = of.pybullet_data.getDataPath()
+    paths = [os.path.join(data, "random_urdfs", f"{i:03d}", f"{i:03d}.urdf") for i in of.RANDOM_SHAPES]
+    paths += [os.path.join(data, name) for name, _ in of.OBJECT_MODELS]
+    for path in paths:
+        vertices, faces = of.urdf_mesh(path)
+        assert len(faces) and np.all(np.isfinite(vertices)), path
