@@ -855,8 +855,11 @@ class ObjectFindingEnv(gym.Env):
             target = self.objects[0]
             self.target_points, self.target_normals = sample_surface(target.vertices, target.faces,
                                                                      s.surface_points, rng)
+            a, b, c = (target.vertices[target.faces[:, k]] for k in range(3))
+            self.target_area_m2 = 0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
         else:
             self.target_points = self.target_normals = np.zeros((0, 3))
+            self.target_area_m2 = 6 * s.object_size_m ** 2
         self.target_seen = np.zeros(len(self.target_points), bool)
 
     def _place_gripper(self, rng) -> None:
@@ -972,6 +975,15 @@ class ObjectFindingEnv(gym.Env):
         self.timings["encode"] = 1e3 * (time.perf_counter() - t0)
         return state
 
+    def perceived_target_fraction(self) -> float:
+        """The share of the target's surface the volume has seen, for the searchers' stop rule.
+
+        The volume's own estimate is relative to the nominal cube; a searcher knows what it is looking
+        for, so the estimate is rescaled by the target's surface area (the nominal cube's when absent).
+        """
+        nominal_area = 6 * self.s.object_size_m ** 2
+        return self.volume.perceived_target_fraction(self.s) * nominal_area / self.target_area_m2
+
     def _info(self) -> dict:
         seen = float(self.target_seen.mean()) if self.target_present else 0.0
         return dict(target_present=self.target_present, target_seen_fraction=seen,
@@ -1084,7 +1096,7 @@ class ScriptedAgent:
         yaw, roll = yaw_roll_of(T[:3, :3])
         action = np.zeros(6, np.float32)
         action[5] = -1.0
-        if env.volume.perceived_target_fraction(s) >= s.seen_threshold or self.turned_rad >= 2 * np.pi:
+        if env.perceived_target_fraction() >= s.seen_threshold or self.turned_rad >= 2 * np.pi:
             action[5] = 1.0
             return action
         to_centre = rotation_z(yaw).T @ np.r_[-T[0, 3], -T[1, 3], s.ceiling_m - T[2, 3]]
@@ -1172,7 +1184,7 @@ class GreedyNextBestView:
     def act(self, obs, env) -> np.ndarray:
         s, volume = env.s, env.volume
         if (volume.explored_fraction() > self.explored_to_stop
-                or volume.perceived_target_fraction(s) > s.seen_threshold):
+                or env.perceived_target_fraction() > s.seen_threshold):
             return np.array([0, 0, 0, 0, 0, 1.0], np.float32)
         T = env.gripper_pose()
         actions = self.candidate_actions()
@@ -1259,7 +1271,7 @@ class GridExhaustiveSearch:
             if np.linalg.norm(offset[:2]) > 0.01 and self.tries < self.tries_per_node:
                 break
             self.next, self.tries = self.next + 1, 0
-        if env.volume.perceived_target_fraction(s) > s.seen_threshold or self.next >= len(self.route):
+        if env.perceived_target_fraction() > s.seen_threshold or self.next >= len(self.route):
             return np.array([0, 0, 0, 0, 0, 1.0], np.float32)
         self.tries += abs(offset[2]) < 0.01                      # only count tries at the sweep height
         step = rotation_z(yaw).T @ offset / s.max_step_m
