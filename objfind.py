@@ -447,6 +447,11 @@ def rotation_z(a: float) -> np.ndarray:
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
 
+def rotation_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+
+
 def rotation_x(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
@@ -598,9 +603,12 @@ def urdf_mesh(urdf_path: str) -> tuple[np.ndarray, np.ndarray]:
     text = Path(urdf_path).read_text()
     visual = text[text.index("<visual"):]
     mesh = re.search(r'<mesh\s+filename="([^"]+)"(?:\s+scale="([^"]+)")?', visual)
-    origin = re.search(r'<origin[^>]*xyz="([^"]+)"', visual[:visual.index("<geometry")])
+    origin = visual[:visual.index("<geometry")]
+    xyz, rpy = re.search(r'xyz="([^"]+)"', origin), re.search(r'rpy="([^"]+)"', origin)
     scale = np.array([float(x) for x in mesh.group(2).split()]) if mesh.group(2) else np.ones(3)
-    offset = np.array([float(x) for x in origin.group(1).split()]) if origin else np.zeros(3)
+    offset = np.array([float(x) for x in xyz.group(1).split()]) if xyz else np.zeros(3)
+    roll, pitch, yaw = (float(x) for x in rpy.group(1).split()) if rpy else (0.0, 0.0, 0.0)
+    R = rotation_z(yaw) @ rotation_y(pitch) @ rotation_x(roll)       # URDF: fixed-axis roll, pitch, yaw
     vertices, faces = [], []
     for line in (Path(urdf_path).parent / mesh.group(1)).read_text().splitlines():
         if line.startswith("v "):
@@ -608,7 +616,7 @@ def urdf_mesh(urdf_path: str) -> tuple[np.ndarray, np.ndarray]:
         elif line.startswith("f "):
             idx = [int(tok.split("/")[0]) - 1 for tok in line.split()[1:]]
             faces += [[idx[0], idx[i], idx[i + 1]] for i in range(1, len(idx) - 1)]   # fan triangulation
-    return np.array(vertices) * scale + offset, np.array(faces)
+    return (np.array(vertices) * scale) @ R.T + offset, np.array(faces)
 
 
 # pybullet_data's household-like meshes with the global scaling that brings each near 5-8 cm

@@ -607,3 +607,10 @@ def test_every_random_shape_and_object_model_has_finite_geometry():
     for path in paths:
         vertices, faces = of.urdf_mesh(path)
         assert len(faces) and np.all(np.isfinite(vertices)), path
+
+
+def test_urdf_visual_origin_rotation_is_applied():
+    path = Path(of.pybullet_data.getDataPath()) / "lego" / "lego.urdf"     # visual rpy = (pi/2, 0, 0)
+    vertices, _ = of.urdf_mesh(str(path))
+    extent = vertices.max(0) - vertices.min(0)
+    assert extent[2] < extent[1]      # the brick lies flat: rotated, its height is the smallest side
