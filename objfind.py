@@ -9,6 +9,8 @@ Fig. 2, and an agent picks the next gripper displacement.
 Read top to bottom: settings, perception, volume, encoder, simulation, agents, command line.
 
     python objfind.py demo --agent scripted     # one episode -> PNG contact sheet + MP4
+    python objfind.py eval --agent gnbv         # paired episodes: success, steps, decision time
+    python objfind.py eval --table              # Table II beside the paper's figures
     python objfind.py bench                     # per-stage milliseconds and env steps/s
 """
 from __future__ import annotations
@@ -1754,6 +1756,9 @@ def cmd_eval(args) -> int:
             csv_path = out / f"{agent}-{task}-{scene}.csv"
             # a cell finished by an earlier (perhaps interrupted) run of the same seeds is reused
             rows = read_csv(csv_path, range(args.seed, args.seed + args.episodes))
+            if rows is None and args.from_csv:
+                print(f"{agent} on {task}/{scene}: - (not run yet: no {csv_path} of these episodes)")
+                continue
             if rows is None:
                 try:
                     rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers)
@@ -1803,6 +1808,8 @@ def build_parser() -> ArgumentParser:
     evaluation.add_argument("--episodes", type=positive_arg, default=100)
     evaluation.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1)
     evaluation.add_argument("--seed", type=count_arg, default=0, help="episode i uses scene seed + i")
+    evaluation.add_argument("--from-csv", action="store_true",
+                            help="with --table: only read cells already run, print '-' for the others")
     evaluation.add_argument("--weights", help="checkpoint of a learned agent (default weights/AGENT.pt)")
     evaluation.add_argument("--out", help="CSV of every episode (with --table: a folder, default results)")
     evaluation.set_defaults(func=cmd_eval)
