@@ -79,6 +79,9 @@ class Settings:
     # Sec. III-C: simulated detector
     noise_rate: float = 20.0            # lambda of the Exp(lambda) subtracted from true detections
     false_positive_share: float = 0.02  # share of pixels turned into false positives, values ~ Exp(lambda)
+    # Sec. IV-B: baselines
+    gnbv_samples: int = 10              # n, poses GNBV samples near the current one (simulation)
+    gnbv_explored_to_stop: float = 0.97 # GNBV terminates above this explored share ("no target")
     # Table II caption: primitive and shape piles hold more objects
     objects_per_pile_dense: tuple = (15, 30)
     # --- where the paper is silent (README, "Choices") ---
@@ -1136,13 +1139,13 @@ class GreedyNextBestView:
     """
 
     ray_grid = (16, 12)            # rays cast per candidate view (a subsampled image)
-    explored_to_stop = 0.97
 
-    def __init__(self, samples: int = 10, seed: int | None = None):
-        self.samples, self.rng = samples, np.random.default_rng(seed)
+    def __init__(self, seed: int | None = None):
+        self.rng = np.random.default_rng(seed)
 
     def reset(self, env) -> None:
         s = env.s
+        self.samples = s.gnbv_samples
         K = intrinsics(s)
         u = (np.arange(self.ray_grid[0]) + 0.5) * s.image_width / self.ray_grid[0]
         v = (np.arange(self.ray_grid[1]) + 0.5) * s.image_height / self.ray_grid[1]
@@ -1193,7 +1196,7 @@ class GreedyNextBestView:
 
     def act(self, obs, env) -> np.ndarray:
         s, volume = env.s, env.volume
-        if (volume.explored_fraction() > self.explored_to_stop
+        if (volume.explored_fraction() > s.gnbv_explored_to_stop
                 or env.perceived_target_fraction() > s.seen_threshold):
             return np.array([0, 0, 0, 0, 0, 1.0], np.float32)
         T = env.gripper_pose()
