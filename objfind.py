@@ -1415,7 +1415,9 @@ def summarise(rows: list) -> dict:
     lo, hi = wilson_interval(int(success.sum()), len(rows))
     steps_half = 1.96 * steps.std(ddof=1) / np.sqrt(len(rows)) if len(rows) > 1 else 0.0
     return dict(episodes=len(rows), success=100 * success.mean(), success_lo=100 * lo, success_hi=100 * hi,
-                steps=steps.mean(), steps_half=steps_half, no_target_episodes=int(absent.sum()),
+                steps=steps.mean(), steps_half=steps_half,
+                steps_with_target=steps[~absent].mean() if (~absent).any() else float("nan"),
+                no_target_episodes=int(absent.sum()),
                 no_target_success=100 * success[absent].mean() if absent.any() else float("nan"),
                 decision_ms=float(np.mean([r["decision_ms"] for r in rows])))
 
@@ -1740,7 +1742,8 @@ def output_file(text: str) -> Path:
 def print_summary(agent: str, task: str, scene: str, summary: dict) -> None:
     s = summary
     print(f"{agent} on {task}/{scene}, {s['episodes']} episodes: success {s['success']:.1f} % "
-          f"[{s['success_lo']:.1f}, {s['success_hi']:.1f}], steps {s['steps']:.2f} +- {s['steps_half']:.2f}, "
+          f"[{s['success_lo']:.1f}, {s['success_hi']:.1f}], steps {s['steps']:.2f} +- {s['steps_half']:.2f} "
+          f"({s['steps_with_target']:.2f} with a target), "
           f"no-target success {s['no_target_success']:.1f} % of {s['no_target_episodes']}, "
           f"decision {s['decision_ms']:.2f} ms/step")
 
