@@ -614,3 +614,21 @@ def test_urdf_visual_origin_rotation_is_applied():
     vertices, _ = of.urdf_mesh(str(path))
     extent = vertices.max(0) - vertices.min(0)
     assert extent[2] < extent[1]      # the brick lies flat: rotated, its height is the smallest side
+
+
+def test_perceived_share_grows_with_the_faces_seen_and_tracks_the_truth(ap_env):
+    seed, *_ = seed_with(ap_env, target_present=True)
+    s = ap_env.s
+    pos = np.array(ap_env.sim.getBasePositionAndOrientation(ap_env.objects[0].body)[0])
+    ap_env.volume.reset()
+    ap_env.target_seen[:] = False
+    shares = []
+    for dist, yaw, roll in [(0.25, 0, 0), (0.2, 0, 0.6), (0.2, np.pi, 0.6), (0.2, np.pi / 2, 0.6)]:
+        R = of.gripper_rotation(yaw, roll)
+        axis = R[:, 2]
+        ap_env._teleport(pos - axis * dist + s.camera_offset_m * axis, R)   # camera looking at the target
+        ap_env._observe()
+        shares.append((ap_env.perceived_target_fraction(), ap_env.target_seen.mean()))
+    (top, top_truth), (last, last_truth) = shares[0], shares[-1]
+    assert last > top + 0.1 and last_truth > top_truth + 0.1          # more faces, more seen, in both
+    assert all(abs(p - t) < 0.15 for p, t in shares), shares
