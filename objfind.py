@@ -1295,9 +1295,6 @@ class GridExhaustiveSearch:
         return action
 
 
-AGENTS = {"random": RandomAgent, "scripted": ScriptedAgent, "gnbv": GreedyNextBestView,
-          "ges": GridExhaustiveSearch}   # the agents `demo` can show
-
 # ================================================================================================
 # Evaluation (Sec. IV-C): paired episodes, success with a Wilson interval, the Table II layout.
 # ================================================================================================
@@ -1554,7 +1551,7 @@ def demo_frame(env: ObjectFindingEnv, state: np.ndarray, text: str) -> np.ndarra
 def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path) -> tuple[Path, Path, dict]:
     """One episode to an MP4 (every step) and a PNG contact sheet (four moments of it)."""
     env = ObjectFindingEnv(task, scene, seed=seed)
-    agent = AGENTS[agent_name]() if agent_name != "random" else RandomAgent(seed)
+    agent = make_agent(agent_name, seed)
     state, info = env.reset()
     agent.reset(env)
     frames = [demo_frame(env, state, f"{task}/{scene} seed {seed}: start")]
@@ -1800,7 +1797,7 @@ def build_parser() -> ArgumentParser:
     parser = ArgumentParser(prog="objfind.py", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
     demo = commands.add_parser("demo", help="one episode to a PNG contact sheet and an MP4")
-    demo.add_argument("--agent", choices=sorted(AGENTS), default="scripted")
+    demo.add_argument("--agent", choices=list(BASELINES), default="scripted")
     demo.add_argument("--task", choices=list(TASKS), default="ap")
     demo.add_argument("--scene", choices=SCENES, default="cubes")
     demo.add_argument("--seed", type=count_arg, default=0)
