@@ -147,9 +147,8 @@ def cube_surface_voxels(side_m: float, voxel_m: float, poses: int = 16, points: 
         p[np.arange(points), (axis + 1) % 3] = face_uv[:, 0]
         p[np.arange(points), (axis + 2) % 3] = face_uv[:, 1]
         yaw = rng.uniform(0, np.pi / 2)
-        c, s = np.cos(yaw), np.sin(yaw)
         shift = np.r_[rng.uniform(0, voxel_m, 2), side_m / 2]       # resting on the floor, z = 0
-        p = p @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + shift
+        p = p @ rotation_z(yaw).T + shift
         _, hits = np.unique(np.floor(p / voxel_m).astype(np.int64), axis=0, return_counts=True)
         coverage = hits * (6 * side_m ** 2 / points) / voxel_m ** 2   # share of a voxel face covered
         counts.append(np.count_nonzero(coverage >= 0.5))
