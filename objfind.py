@@ -97,6 +97,7 @@ class Settings:
     seen_threshold: float = 0.2         # target observed once this share of its surface points was seen
     surface_points: int = 1000          # ground-truth points on the target surface (+-0.013 at 0.2)
     seen_depth_tol_m: float = 0.01      # a point is unoccluded if within this of the rendered depth
+    seen_min_cos: float = 0.15          # a surface seen more obliquely than ~80 degrees is not resolved
     detection_threshold: float = 0.5    # a detection voxel above this counts as perceived target
     wall_height_m: float = 0.1
     gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper
@@ -126,33 +127,9 @@ class Settings:
 
     @property
     def nominal_target_voxels(self) -> float:
-        """Voxels touched by the whole surface (6 faces, as the ground truth) of the nominal cube."""
-        return cube_surface_voxels(self.object_size_m, self.voxel_m)
-
-
-@functools.lru_cache(maxsize=None)
-def cube_surface_voxels(side_m: float, voxel_m: float, poses: int = 16, points: int = 60000) -> float:
-    """Voxels in which the surface of a cube resting on the floor covers at least half a voxel face,
-    the rule by which the volume marks seen target surface; mean over random yaws and offsets.
-
-    Sampled once (seeded) and cached.
-    """
-    rng = np.random.default_rng(0)
-    counts = []
-    for _ in range(poses):
-        face_uv = rng.uniform(-side_m / 2, side_m / 2, (points, 2))
-        axis, sign = rng.integers(3, size=points), rng.choice([-1.0, 1.0], points)
-        p = np.zeros((points, 3))
-        p[np.arange(points), axis] = sign * side_m / 2
-        p[np.arange(points), (axis + 1) % 3] = face_uv[:, 0]
-        p[np.arange(points), (axis + 2) % 3] = face_uv[:, 1]
-        yaw = rng.uniform(0, np.pi / 2)
-        shift = np.r_[rng.uniform(0, voxel_m, 2), side_m / 2]       # resting on the floor, z = 0
-        p = p @ rotation_z(yaw).T + shift
-        _, hits = np.unique(np.floor(p / voxel_m).astype(np.int64), axis=0, return_counts=True)
-        coverage = hits * (6 * side_m ** 2 / points) / voxel_m ** 2   # share of a voxel face covered
-        counts.append(np.count_nonzero(coverage >= 0.5))
-    return float(np.mean(counts))
+        """Surface voxels of a fully seen nominal cube: its area in voxel faces (about one marked
+        voxel per voxel face of surface seen, counting each face on its own)."""
+        return 6 * (self.object_size_m / self.voxel_m) ** 2
 
 
 TASKS = {
@@ -203,6 +180,18 @@ def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, s: Sett
 # ================================================================================================
 
 
+def surface_derivative(P: np.ndarray, axis: int) -> np.ndarray:
+    """Derivative of a point image along an image axis: the smaller of the two one-sided differences."""
+    d = np.diff(P, axis=axis)
+    pad = [(0, 0)] * P.ndim
+    pad[axis] = (1, 0)
+    backward = np.pad(d, pad, mode="edge")
+    pad[axis] = (0, 1)
+    forward = np.pad(d, pad, mode="edge")
+    use_forward = np.linalg.norm(forward, axis=-1) < np.linalg.norm(backward, axis=-1)
+    return np.where(use_forward[..., None], forward, backward)
+
+
 class TSDFVolume:
     """A TSDF over the workspace plus a detection channel (a truncated *unsigned* distance of detections).
 
@@ -212,7 +201,7 @@ class TSDFVolume:
     """
 
     def __init__(self, size_m: float, height_m: float, voxels_per_side: int, trunc_m: float,
-                 max_weight: float, detection_threshold: float = 0.5):
+                 max_weight: float, detection_threshold: float = 0.5, seen_min_cos: float = 0.15):
         self.voxel_m = size_m / voxels_per_side
         self.shape = (voxels_per_side, voxels_per_side, int(round(height_m / self.voxel_m)))
         self.origin = np.array([-size_m / 2, -size_m / 2, 0.0])
@@ -221,8 +210,8 @@ class TSDFVolume:
         self.tsdf = np.zeros(self.shape, np.float32)        # (nx, ny, nz) signed distance / trunc
         self.weight = np.zeros(self.shape, np.float32)      # (nx, ny, nz) observations, at most max_weight
         self.detections = np.zeros(self.shape, np.float32)  # (nx, ny, nz) detection score near surfaces
-        self.target_surface = np.zeros(self.shape, bool)    # (nx, ny, nz) where detected pixels landed
-        self.detection_threshold = detection_threshold
+        self.target_area = np.zeros(self.shape, np.float32)  # (nx, ny, nz) m^2 of target surface seen
+        self.detection_threshold, self.seen_min_cos = detection_threshold, seen_min_cos
         # Voxel centres are separable, so we keep three 1-D axes instead of an (N, 3) array: camera
         # coordinates of a sub-box then come from broadcasting, never from a matrix product per voxel.
         self.axes = [(np.arange(n, dtype=np.float32) + 0.5) * self.voxel_m + o
@@ -235,7 +224,7 @@ class TSDFVolume:
 
     def reset(self) -> None:
         self.tsdf.fill(0.0), self.weight.fill(0.0), self.detections.fill(0.0)
-        self.target_surface.fill(False)
+        self.target_area.fill(0.0)
         self.observed_count = 0
 
     def observed(self) -> np.ndarray:
@@ -346,30 +335,32 @@ class TSDFVolume:
         return newly
 
     def _mark_target_surface(self, depth_m, detections, K, T_world_camera, flat, det_new) -> None:
-        """Keep `target_surface`: the voxels where confidently detected pixels hit a surface.
+        """Keep `target_area`: per voxel, the target surface area (m^2) seen in it by one view.
 
         The detection channel itself cannot say how much of a small target was seen: its band is as
         thick as a cube, and the half of it in free space is carved by the next view from another
-        side. Back-projecting the detected pixels marks surface voxels instead, one per patch of
-        surface seen; a mark is dropped once the channel there falls to the threshold (carved, or
+        side. Back-projecting the detected pixels with the surface area each covers measures it
+        instead. A voxel keeps the most area any single view saw in it, so seeing a face twice does
+        not count it twice; it is cleared once the channel there falls to the threshold (carved, or
         forgotten after two views of something else, as when the target was pushed away).
         """
-        surface = self.target_surface.reshape(-1)
-        if surface.any():   # a mark lives only while the channel still holds a confident detection
-            surface[flat] &= det_new > self.detection_threshold
+        area_seen = self.target_area.reshape(-1)
+        if area_seen.any():   # area lives only while the channel still holds a confident detection
+            area_seen[flat] *= det_new > self.detection_threshold
         detected = (detections > self.detection_threshold) & (depth_m > 0)
         if not detected.any():
             return
-        # The surface a pixel covers is |dP/du x dP/dv| for P the back-projected depth image (capped
-        # where a depth edge makes the difference meaningless). Each detected pixel is split into
-        # 2 x 2 sub-pixels carrying a quarter of that area; a voxel is marked once the sub-pixels
-        # landing in it cover half a voxel face, so a voxel the seen patch barely touches does not
-        # count, whether the view is near, far or oblique.
+        # The surface a pixel covers is |dP/du x dP/dv| for P the back-projected depth image, each
+        # derivative taken towards the neighbour on the same surface (the smaller one-sided
+        # difference), so pixels along the target's outline do not borrow the depth jump to the
+        # background; it is capped where both sides jump (a sliver). Each pixel is split into 2 x 2
+        # sub-pixels carrying a quarter of its area, so that area lands in the right voxel even when
+        # a pixel is as large as a voxel (far views).
         H, W = depth_m.shape
         rows, cols = np.mgrid[0:H, 0:W] + 0.5
         P = np.stack([(cols - K[0, 2]) / K[0, 0] * depth_m, (rows - K[1, 2]) / K[1, 1] * depth_m, depth_m], -1)
-        pixel_area = np.linalg.norm(np.cross(np.gradient(P, axis=1), np.gradient(P, axis=0)), axis=-1)
-        pixel_area = np.minimum(pixel_area, 4 * (depth_m / K[0, 0]) ** 2)
+        pixel_area = np.linalg.norm(np.cross(surface_derivative(P, 1), surface_derivative(P, 0)), axis=-1)
+        pixel_area[pixel_area * self.seen_min_cos > (depth_m / K[0, 0]) ** 2] = 0.0
         v, u = np.nonzero(detected)
         z = np.repeat(depth_m[v, u], 4)
         su = np.repeat(u, 4) + np.tile([0.25, 0.75, 0.25, 0.75], len(u))
@@ -379,15 +370,14 @@ class TSDFVolume:
         index = np.floor((world - self.origin) / self.voxel_m).astype(np.int64)
         inside = np.all((index >= 0) & (index < self.shape), axis=1)
         flat_hit = np.ravel_multi_index(tuple(index[inside].T), self.shape)
-        area = np.repeat(pixel_area[v, u], 4)[inside] / 4 / self.voxel_m ** 2      # in voxel faces
+        area = np.repeat(pixel_area[v, u], 4)[inside] / 4
         voxels, which = np.unique(flat_hit, return_inverse=True)
-        coverage = np.bincount(which, weights=area)
-        surface[voxels[coverage >= 0.5]] = True
+        area_seen[voxels] = np.maximum(area_seen[voxels], np.bincount(which, weights=area))
 
     def perceived_target_fraction(self, s: Settings) -> float:
-        """Share of the target's surface the agent has seen: marked surface voxels over the nominal
-        target's surface voxels. What the baselines and the scripted agent stop on."""
-        return float(np.count_nonzero(self.target_surface)) / s.nominal_target_voxels
+        """Share of the nominal target's surface the agent has seen: the target area in the volume
+        over the cube's 6 faces. What the baselines and the scripted agent stop on."""
+        return float(self.target_area.sum()) / (6 * s.object_size_m ** 2)
 
 # ================================================================================================
 # Encoder (Sec. III-B.1, Fig. 2): the volume around the end-effector -> 71 values.
@@ -601,6 +591,73 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.rand
     return points, normals * np.where(outward == 0, 1.0, outward)[:, None]
 
 
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere."""
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    a = np.pi * (1 + 5 ** 0.5) * k
+    return np.stack([np.sqrt(1 - z ** 2) * np.cos(a), np.sqrt(1 - z ** 2) * np.sin(a), z], 1)
+
+
+def body_frame_mesh(sim, body: int, urdf_path: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """The visual mesh of a loaded URDF body in pybullet's base frame, which is the inertial frame."""
+    v, f = urdf_mesh(urdf_path)
+    _, _, _, inertial_pos, inertial_orn, *_ = sim.getDynamicsInfo(body, -1)
+    R = np.array(pb.getMatrixFromQuaternion(inertial_orn)).reshape(3, 3)
+    return (v * scale - np.array(inertial_pos)) @ R, f
+
+
+EXTERIOR_CACHE: dict = {}
+
+
+def exterior_surface(urdf_path: str, scale: float, candidates: int = 8000, views: int = 40,
+                     pixels: int = 128):
+    """Points on the part of a mesh model's surface that can be seen from outside, their normals
+    (turned towards a camera that sees them), and that part's area. Cached per model.
+
+    Household meshes are unions of convex pieces (teddy, duck) or have faces no view reaches (a
+    lego's studs inside its underside): ground truth sampled on all faces counts surface nobody can
+    see. The model alone is rendered from `views` directions around it; a candidate point is kept
+    when some view sees it unoccluded and not edge-on.
+    """
+    key = (urdf_path, scale, candidates)
+    if key not in EXTERIOR_CACHE:
+        sim = Simulator()
+        try:
+            body = sim.loadURDF(urdf_path, globalScaling=scale)
+            sim.resetBasePositionAndOrientation(body, [0, 0, 0], [0, 0, 0, 1])   # world = base frame
+            vertices, faces = body_frame_mesh(sim, body, urdf_path, scale)
+            points, normals = sample_surface(vertices, faces, candidates, np.random.default_rng(0))
+            radius = float(np.linalg.norm(vertices, axis=1).max())
+            distance = 4 * radius
+            K = np.array([[pixels * distance / (2.4 * radius), 0, pixels / 2],
+                          [0, pixels * distance / (2.4 * radius), pixels / 2], [0, 0, 1]])
+            footprint = 2.4 * radius / pixels
+            seen_from = np.zeros(len(points))             # signed: which side of the face was seen
+            for d in fibonacci_sphere(views):
+                z_axis = -d
+                x_axis = np.cross(z_axis, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
+                x_axis /= np.linalg.norm(x_axis)
+                T = np.eye(4)
+                T[:3, :3] = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], 1)
+                T[:3, 3] = d * distance
+                _, depth = render_rgbd(sim, T, K, pixels, pixels, distance - 2 * radius, distance + 2 * radius)
+                cam = (points - T[:3, 3]) @ T[:3, :3]
+                u = np.clip((K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2]).astype(int), 0, pixels - 1)
+                v = np.clip((K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]).astype(int), 0, pixels - 1)
+                cos = normals @ d                           # d points from the model to the camera
+                slack = footprint / np.maximum(np.abs(cos), 0.15) + 0.01 * radius
+                visible = (np.abs(depth[v, u] - cam[:, 2]) < slack) & (np.abs(cos) > 0.15)
+                seen_from[visible & (seen_from == 0)] = np.sign(cos[visible & (seen_from == 0)])
+        finally:
+            sim.disconnect()
+        a, b, c = (vertices[faces[:, k]] for k in range(3))
+        area = 0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+        keep = seen_from != 0
+        EXTERIOR_CACHE[key] = (points[keep], normals[keep] * seen_from[keep, None], area * keep.mean())
+    return EXTERIOR_CACHE[key]
+
+
 @functools.lru_cache(maxsize=None)
 def urdf_mesh(urdf_path: str) -> tuple[np.ndarray, np.ndarray]:
     """Visual mesh of a one-link URDF in its link frame (scale and origin applied), parsed from the OBJ."""
@@ -638,6 +695,7 @@ class SceneObject:
     faces: np.ndarray      # (F, 3)
     radius_m: float        # of the footprint, for placing objects apart
     half_height_m: float   # lowest vertex below the body origin when upright
+    model: tuple | None = None   # (URDF path, scale) of a mesh model; None for a convex primitive
 
 
 def make_object(sim, scene: str, size: float, rng: np.random.Generator, rgba) -> SceneObject:
@@ -676,14 +734,11 @@ def make_object(sim, scene: str, size: float, rng: np.random.Generator, rgba) ->
             path = os.path.join(data, name)
         body = sim.loadURDF(path, globalScaling=scale, useMaximalCoordinates=True)
         sim.changeVisualShape(body, -1, rgbaColor=rgba, textureUniqueId=-1)
-        v, f = urdf_mesh(path)
-        # pybullet's base frame is the inertial frame: move the link-frame mesh into it
-        _, _, _, inertial_pos, inertial_orn, *_ = sim.getDynamicsInfo(body, -1)
-        R = np.array(pb.getMatrixFromQuaternion(inertial_orn)).reshape(3, 3)
-        v = (v * scale - np.array(inertial_pos)) @ R
+        v, f = body_frame_mesh(sim, body, path, scale)
     # Objects may sleep: a resting pile then costs nothing per physics step until something touches it.
     sim.changeDynamics(body, -1, lateralFriction=0.6, activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING)
-    return SceneObject(body, v, f, float(np.linalg.norm(v[:, :2], axis=1).max()), float(-v[:, 2].min()))
+    return SceneObject(body, v, f, float(np.linalg.norm(v[:, :2], axis=1).max()), float(-v[:, 2].min()),
+                       None if kind is not None else (path, scale))
 
 
 class Simulator:
@@ -724,7 +779,7 @@ class ObjectFindingEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (71,), np.float32)
         self.volume = TSDFVolume(s.workspace_m, s.volume_height_m, s.voxels_per_side, s.trunc_m, s.max_weight,
-                                 s.detection_threshold)
+                                 s.detection_threshold, s.seen_min_cos)
         self.K = intrinsics(s)
         self.sim = Simulator()
         self.timings = dict.fromkeys(("physics", "render", "detect", "integrate", "encode"), 0.0)
@@ -865,10 +920,15 @@ class ObjectFindingEnv(gym.Env):
         self.piles, self.disturbed = piles, False
         if self.target_present:
             target = self.objects[0]
-            self.target_points, self.target_normals = sample_surface(target.vertices, target.faces,
-                                                                     s.surface_points, rng)
-            a, b, c = (target.vertices[target.faces[:, k]] for k in range(3))
-            self.target_area_m2 = 0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+            if target.model is None:     # a convex primitive: all of its surface can be seen
+                self.target_points, self.target_normals = sample_surface(target.vertices, target.faces,
+                                                                         s.surface_points, rng)
+                a, b, c = (target.vertices[target.faces[:, k]] for k in range(3))
+                self.target_area_m2 = 0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+            else:
+                points, normals, self.target_area_m2 = exterior_surface(*target.model)
+                pick = rng.choice(len(points), s.surface_points, replace=False)
+                self.target_points, self.target_normals = points[pick], normals[pick]
         else:
             self.target_points = self.target_normals = np.zeros((0, 3))
             self.target_area_m2 = 6 * s.object_size_m ** 2
@@ -949,7 +1009,9 @@ class ObjectFindingEnv(gym.Env):
         pos, orn = self.sim.getBasePositionAndOrientation(self.objects[0].body)
         R = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
         world = self.target_points @ R.T + pos
-        facing = np.sum((self.target_normals @ R.T) * (T_world_camera[:3, 3] - world), axis=1) > 0
+        to_camera = T_world_camera[:3, 3] - world
+        facing = (np.sum((self.target_normals @ R.T) * to_camera, axis=1)
+                  > self.s.seen_min_cos * np.linalg.norm(to_camera, axis=1))
         cam = (world - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]     # R^T (p - t), row-wise
         z = cam[:, 2]
         safe = np.where(z > 1e-6, z, 1.0)
@@ -958,7 +1020,7 @@ class ObjectFindingEnv(gym.Env):
         H, W = depth_m.shape
         inside = (z > self.s.near_m) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         rendered = depth_m[np.clip(v, 0, H - 1), np.clip(u, 0, W - 1)]
-        unoccluded = (rendered > 0) & (np.abs(rendered - z) < self.s.seen_depth_tol_m)
+        unoccluded = (rendered == 0) | (rendered > z - self.s.seen_depth_tol_m)   # nothing in front of it
         self.target_seen |= facing & inside & unoccluded
 
     def _observe(self) -> int:
