@@ -32,6 +32,8 @@ import cv2
 import gymnasium as gym
 import numpy as np
 import pybullet_data
+import torch
+from torch import nn
 from tqdm import tqdm
 
 
@@ -99,6 +101,7 @@ class Settings:
     seen_depth_tol_m: float = 0.01      # a point is unoccluded if within this of the rendered depth
     seen_min_cos: float = 0.15          # a surface seen more obliquely than ~80 degrees is not resolved
     detection_threshold: float = 0.5    # a detection voxel above this counts as perceived target
+    outline_pixel_share: float = 0.5    # a detected pixel on the outline counts as half target area
     wall_height_m: float = 0.1
     gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper
     physics_hz: int = 240
@@ -138,6 +141,28 @@ TASKS = {
     "ip": Settings(min_objects=15, max_objects=75, piles=3, exploration_ratio=0.25),
 }
 SCENES = ("cubes", "fixed-primitives", "variable-primitives", "random-shapes", "object-models")
+
+
+@dataclass(frozen=True)
+class PPOSettings:
+    """PPO for A3DE and I3DE (Sec. III-B.4, IV-A); the paper's name beside each of its constants."""
+
+    hidden: int = 200                  # "2 hidden layers with 200 units"
+    batch_steps: int = 5000            # "batch size of 5000" env steps per update
+    minibatch: int = 500               # "minibatch size of 500"
+    gamma: float = 0.99                # discount factor
+    entropy_coef: float = 0.01         # entropy bonus
+    # --- where the paper is silent (README, "Choices") ---
+    gae_lambda: float = 0.95           # GAE: the usual bias-variance balance
+    clip: float = 0.2                  # clipped surrogate objective
+    epochs: int = 10                   # passes over each batch
+    learning_rate: float = 3e-4        # Adam
+    value_coef: float = 0.5            # weight of the value loss
+    max_grad_norm: float = 0.5         # gradient clipping
+    reward_scale: float = 1 / 150      # rewards divided by r_d: returns of order one for the critic
+    init_log_std: float = -0.5         # initial std 0.6 of the five displacements (the Box is [-1, 1])
+    init_terminate_prob: float = 0.02  # a fresh policy that terminated half the time would never look
+    checkpoint_every: int = 5          # updates between checkpoints
 
 # ================================================================================================
 # Perception (Sec. III-B.1, III-C): a CIELAB colour detector and the paper's detector noise.
@@ -201,7 +226,8 @@ class TSDFVolume:
     """
 
     def __init__(self, size_m: float, height_m: float, voxels_per_side: int, trunc_m: float,
-                 max_weight: float, detection_threshold: float = 0.5, seen_min_cos: float = 0.15):
+                 max_weight: float, detection_threshold: float = 0.5, seen_min_cos: float = 0.15,
+                 outline_pixel_share: float = 0.5):
         self.voxel_m = size_m / voxels_per_side
         self.shape = (voxels_per_side, voxels_per_side, int(round(height_m / self.voxel_m)))
         self.origin = np.array([-size_m / 2, -size_m / 2, 0.0])
@@ -212,6 +238,7 @@ class TSDFVolume:
         self.detections = np.zeros(self.shape, np.float32)  # (nx, ny, nz) detection score near surfaces
         self.target_area = np.zeros(self.shape, np.float32)  # (nx, ny, nz) m^2 of target surface seen
         self.detection_threshold, self.seen_min_cos = detection_threshold, seen_min_cos
+        self.outline_pixel_share = outline_pixel_share
         # Voxel centres are separable, so we keep three 1-D axes instead of an (N, 3) array: camera
         # coordinates of a sub-box then come from broadcasting, never from a matrix product per voxel.
         self.axes = [(np.arange(n, dtype=np.float32) + 0.5) * self.voxel_m + o
@@ -361,6 +388,9 @@ class TSDFVolume:
         P = np.stack([(cols - K[0, 2]) / K[0, 0] * depth_m, (rows - K[1, 2]) / K[1, 1] * depth_m, depth_m], -1)
         pixel_area = np.linalg.norm(np.cross(surface_derivative(P, 1), surface_derivative(P, 0)), axis=-1)
         pixel_area[pixel_area * self.seen_min_cos > (depth_m / K[0, 0]) ** 2] = 0.0
+        outline = detected & ~(np.roll(detected, 1, 0) & np.roll(detected, -1, 0)
+                               & np.roll(detected, 1, 1) & np.roll(detected, -1, 1))
+        pixel_area[outline] *= self.outline_pixel_share
         v, u = np.nonzero(detected)
         z = np.repeat(depth_m[v, u], 4)
         su = np.repeat(u, 4) + np.tile([0.25, 0.75, 0.25, 0.75], len(u))
@@ -779,7 +809,7 @@ class ObjectFindingEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (71,), np.float32)
         self.volume = TSDFVolume(s.workspace_m, s.volume_height_m, s.voxels_per_side, s.trunc_m, s.max_weight,
-                                 s.detection_threshold, s.seen_min_cos)
+                                 s.detection_threshold, s.seen_min_cos, s.outline_pixel_share)
         self.K = intrinsics(s)
         self.sim = Simulator()
         self.timings = dict.fromkeys(("physics", "render", "detect", "integrate", "encode"), 0.0)
@@ -1354,6 +1384,266 @@ class GridExhaustiveSearch:
         action[3] = np.clip(-roll / s.max_turn_rad, -1, 1)
         action[5] = -1.0
         return action
+
+
+# ================================================================================================
+# Learned agents (Sec. III-B.4, IV-A): a hand-written PPO, the A3DE and I3DE policies.
+# ================================================================================================
+
+class ActorCritic(nn.Module):
+    """Actor and critic MLPs (2 x 200, tanh). The actor gives the means of a Gaussian over the five
+    displacements (state-independent std) and the logit of a Bernoulli "terminate"."""
+
+    moves = 5
+
+    def __init__(self, obs_dim: int, p: PPOSettings):
+        super().__init__()
+        def mlp(out: int) -> nn.Sequential:
+            return nn.Sequential(nn.Linear(obs_dim, p.hidden), nn.Tanh(), nn.Linear(p.hidden, p.hidden),
+                                 nn.Tanh(), nn.Linear(p.hidden, out))
+        self.actor, self.critic = mlp(self.moves + 1), mlp(1)
+        self.log_std = nn.Parameter(torch.full((self.moves,), p.init_log_std))
+        with torch.no_grad():   # small initial means; a rarely terminating start
+            self.actor[-1].weight.mul_(0.01)
+            self.actor[-1].bias.zero_()
+            self.actor[-1].bias[-1] = float(np.log(p.init_terminate_prob / (1 - p.init_terminate_prob)))
+
+    def distributions(self, obs: torch.Tensor):
+        out = self.actor(obs)
+        return (torch.distributions.Normal(out[:, :self.moves], self.log_std.exp()),
+                torch.distributions.Bernoulli(logits=out[:, self.moves]))
+
+    def value(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.critic(obs)[:, 0]
+
+    def evaluate(self, obs: torch.Tensor, raw: torch.Tensor):
+        """Log-probability and entropy of raw actions (5 displacements, terminate bit) under the policy."""
+        move, stop = self.distributions(obs)
+        logp = move.log_prob(raw[:, :self.moves]).sum(1) + stop.log_prob(raw[:, self.moves])
+        return logp, move.entropy().sum(1) + stop.entropy()
+
+
+def env_actions(raw: np.ndarray) -> np.ndarray:
+    """Raw policy samples -> the env's Box: displacements clipped to [-1, 1], terminate as +-1."""
+    return np.concatenate([np.clip(raw[:, :5], -1, 1), np.where(raw[:, 5:] > 0.5, 1.0, -1.0)], 1).astype(np.float32)
+
+
+class PPOAgent:
+    """A trained policy as an agent for eval and demo: the Gaussian's mean, terminate when p > 0.5."""
+
+    def __init__(self, checkpoint: dict):
+        self.model = ActorCritic(checkpoint["obs_dim"], PPOSettings(**checkpoint["settings"]))
+        self.model.load_state_dict(checkpoint["model"])
+        self.model.eval()
+
+    def reset(self, env) -> None:
+        pass
+
+    def act(self, obs, env) -> np.ndarray:
+        with torch.no_grad():
+            move, stop = self.model.distributions(torch.as_tensor(obs, dtype=torch.float32)[None])
+            raw = torch.cat([move.mean, (stop.probs > 0.5).float()[:, None]], 1).numpy()
+        return env_actions(raw)[0]
+
+
+def gae(rewards, values, dones, last_value, gamma: float, lam: float):
+    """Generalised advantage estimates and returns over (T, W) arrays; dones[t] ends the episode at t."""
+    T = len(rewards)
+    advantages = np.zeros_like(rewards)
+    running = np.zeros_like(last_value)
+    for t in reversed(range(T)):   # a loop over time steps, not data: T x W arrays at once
+        next_value = last_value if t == T - 1 else values[t + 1]
+        not_done = 1.0 - dones[t]
+        delta = rewards[t] + gamma * next_value * not_done - values[t]
+        running = delta + gamma * lam * not_done * running
+        advantages[t] = running
+    return advantages, advantages + values
+
+
+def ppo_update(model: ActorCritic, optimizer, batch: dict, p: PPOSettings, generator) -> dict:
+    """Clipped-objective epochs over minibatches of one batch; returns the mean losses and statistics."""
+    n = len(batch["obs"])
+    adv = batch["advantages"]
+    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    stats = dict(policy_loss=[], value_loss=[], entropy=[], approx_kl=[], clip_fraction=[])
+    for _ in range(p.epochs):
+        order = torch.randperm(n, generator=generator)
+        for start in range(0, n, p.minibatch):
+            i = order[start:start + p.minibatch]
+            logp, entropy = model.evaluate(batch["obs"][i], batch["raw"][i])
+            log_ratio = logp - batch["logp"][i]
+            ratio = log_ratio.exp()
+            policy_loss = -torch.min(ratio * adv[i], ratio.clamp(1 - p.clip, 1 + p.clip) * adv[i]).mean()
+            value_loss = 0.5 * (model.value(batch["obs"][i]) - batch["returns"][i]).pow(2).mean()
+            loss = policy_loss + p.value_coef * value_loss - p.entropy_coef * entropy.mean()
+            optimizer.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(model.parameters(), p.max_grad_norm)
+            optimizer.step()
+            with torch.no_grad():
+                stats["policy_loss"].append(policy_loss.item())
+                stats["value_loss"].append(value_loss.item())
+                stats["entropy"].append(entropy.mean().item())
+                stats["approx_kl"].append(((ratio - 1) - log_ratio).mean().item())
+                stats["clip_fraction"].append(((ratio - 1).abs() > p.clip).float().mean().item())
+    return {k: float(np.mean(v)) for k, v in stats.items()}
+
+
+def collect_rollout(envs, model: ActorCritic, steps: int, seeds: list, generator) -> tuple[dict, list]:
+    """`steps` steps of every env from a fresh reset with `seeds`; returns the batch and the finished
+    episodes. Resetting at the start of each update makes an update a function of the weights, the
+    optimizer and the update's index alone, so a resumed run repeats it exactly."""
+    W = envs.num_envs
+    obs, _ = envs.reset(seed=seeds)
+    buf = {k: [] for k in ("obs", "raw", "logp", "values", "rewards", "dones")}
+    episodes, returns, lengths = [], np.zeros(W), np.zeros(W, int)
+    for _ in range(steps):
+        obs_t = torch.as_tensor(obs, dtype=torch.float32)
+        with torch.no_grad():
+            move, stop = model.distributions(obs_t)
+            raw = torch.cat([move.mean + move.stddev * torch.randn(move.mean.shape, generator=generator),
+                             torch.bernoulli(stop.probs, generator=generator)[:, None]], 1)
+            logp, _ = model.evaluate(obs_t, raw)
+            values = model.value(obs_t)
+        obs, rewards, terminated, truncated, infos = envs.step(env_actions(raw.numpy()))
+        done = terminated | truncated
+        for k, v in (("obs", obs_t), ("raw", raw), ("logp", logp), ("values", values)):
+            buf[k].append(v)
+        buf["rewards"].append(rewards)
+        buf["dones"].append(done.astype(np.float64))
+        returns += rewards
+        lengths += 1
+        for w in np.nonzero(done)[0]:   # same-step autoreset: `obs` already starts the next episode
+            episodes.append(dict(ret=returns[w], length=lengths[w],
+                                 success=bool(infos["final_info"]["success"][w])))
+            returns[w], lengths[w] = 0.0, 0
+    with torch.no_grad():
+        last_value = model.value(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+    return dict(obs=torch.stack(buf["obs"]), raw=torch.stack(buf["raw"]), logp=torch.stack(buf["logp"]),
+                values=torch.stack(buf["values"]).numpy(), rewards=np.array(buf["rewards"]),
+                dones=np.array(buf["dones"]), last_value=last_value), episodes
+
+
+def save_checkpoint(path: Path, checkpoint: dict) -> None:
+    """torch.save to a temporary file, then rename: a killed run never leaves a half-written checkpoint."""
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(checkpoint, tmp)
+    os.replace(tmp, path)
+
+
+TRAIN_LOG_FIELDS = ("update", "env_steps", "episodes", "return", "success", "episode_length", "policy_loss",
+                    "value_loss", "entropy", "approx_kl", "clip_fraction", "wall_s")
+
+
+def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSettings(), workers: int = 1,
+          seed: int = 0, resume: bool = False, progress: bool = True, meta: dict | None = None) -> dict:
+    """PPO on `workers` copies of make_env(); writes out_dir/checkpoint.pt every few updates and
+    out_dir/log.csv every update. With resume, continues from the checkpoint exactly."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
+    envs = (gym.vector.AsyncVectorEnv([make_env] * workers, context="spawn",
+                                      autoreset_mode=gym.vector.AutoresetMode.SAME_STEP) if workers > 1 else
+            gym.vector.SyncVectorEnv([make_env], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP))
+    obs_dim = envs.single_observation_space.shape[0]
+    torch.manual_seed(seed)
+    model = ActorCritic(obs_dim, p)
+    optimizer = torch.optim.Adam(model.parameters(), lr=p.learning_rate, eps=1e-5)
+    update, env_steps, wall_s, log_rows = 0, 0, 0.0, []
+    if resume and ckpt_path.exists():
+        checkpoint = read_checkpoint(ckpt_path)
+        model.load_state_dict(checkpoint["model"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        update, env_steps, wall_s, seed = (checkpoint[k] for k in ("update", "env_steps", "wall_s", "seed"))
+        log_rows = [r for r in read_train_log(log_path) if int(r["update"]) <= update]   # drop the lost tail
+    elif resume:
+        raise UsageError(f"--resume: no checkpoint in {str(out_dir)!r}")
+    steps_per_env = max(1, p.batch_steps // workers)
+    bar = tqdm(total=total_steps, initial=min(env_steps, total_steps), unit="step", disable=not progress,
+               file=sys.stderr, desc="train")
+    recent = []
+    try:
+        while env_steps < total_steps:
+            t0 = time.perf_counter()
+            generator = torch.Generator().manual_seed(seed * 1_000_003 + update)
+            seeds = [seed * 1_000_003 + update * workers + w for w in range(workers)]
+            batch, episodes = collect_rollout(envs, model, steps_per_env, seeds, generator)
+            rewards = batch["rewards"] * p.reward_scale
+            advantages, returns = gae(rewards, batch["values"], batch["dones"], batch["last_value"], p.gamma,
+                                      p.gae_lambda)
+            flat = dict(obs=batch["obs"].reshape(-1, obs_dim), raw=batch["raw"].reshape(-1, 6),
+                        logp=batch["logp"].reshape(-1),
+                        advantages=torch.as_tensor(advantages.reshape(-1), dtype=torch.float32),
+                        returns=torch.as_tensor(returns.reshape(-1), dtype=torch.float32))
+            stats = ppo_update(model, optimizer, flat, p, generator)
+            update += 1
+            env_steps += steps_per_env * workers
+            wall_s += time.perf_counter() - t0
+            recent = (recent + episodes)[-200:]
+            row = dict(update=update, env_steps=env_steps, episodes=len(episodes),
+                       **{"return": np.mean([e["ret"] for e in episodes]) if episodes else np.nan},
+                       success=np.mean([e["success"] for e in episodes]) if episodes else np.nan,
+                       episode_length=np.mean([e["length"] for e in episodes]) if episodes else np.nan,
+                       **stats, wall_s=wall_s)
+            log_rows.append({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+            write_train_log(log_rows, log_path)
+            if update % p.checkpoint_every == 0 or env_steps >= total_steps:
+                save_checkpoint(ckpt_path, dict(format="objfind-ppo", model=model.state_dict(),
+                                                optimizer=optimizer.state_dict(), update=update,
+                                                env_steps=env_steps, wall_s=wall_s, seed=seed, obs_dim=obs_dim,
+                                                settings=vars(p).copy(), **(meta or {})))
+                plot_learning_curve(log_rows, out_dir / "curve.png")
+            bar.update(min(env_steps, total_steps) - bar.n)
+            bar.set_postfix(steps_per_s=f"{steps_per_env * workers / (time.perf_counter() - t0):.0f}",
+                            success=f"{np.mean([e['success'] for e in recent]) if recent else 0:.2f}")
+    finally:
+        bar.close()
+        envs.close()
+    return dict(update=update, env_steps=env_steps, model=model, log=log_rows)
+
+
+def read_train_log(path: Path) -> list:
+    import csv
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def write_train_log(rows: list, path: Path) -> None:
+    import csv
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=TRAIN_LOG_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
+
+
+def plot_learning_curve(rows: list, path: Path, width: int = 640, height: int = 360) -> None:
+    """Success rate and mean episode length against env steps, drawn with OpenCV (no plotting library)."""
+    image = np.full((height, width, 3), 255, np.uint8)
+    x = np.array([float(r["env_steps"]) for r in rows])
+    left, right, top, bottom = 60, width - 60, 30, height - 40
+    cv2.rectangle(image, (left, top), (right, bottom), (0, 0, 0), 1)
+    for name, scale, colour in (("success", 1.0, (40, 160, 40)), ("episode_length", None, (200, 80, 40))):
+        y = np.array([float(r[name]) for r in rows])
+        ok = np.isfinite(y)
+        if ok.sum() < 2:
+            continue
+        top_value = scale or max(1.0, float(np.nanmax(y)))
+        px = left + (x[ok] - x.min()) / max(1.0, x.max() - x.min()) * (right - left)
+        py = bottom - y[ok] / top_value * (bottom - top)
+        cv2.polylines(image, [np.stack([px, py], 1).astype(np.int32)], False, colour, 2, cv2.LINE_AA)
+        label_x = 8 if scale else right + 4
+        cv2.putText(image, f"{top_value:.0f}" if not scale else "1.0", (label_x, top + 10),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, 1, cv2.LINE_AA)
+    cv2.putText(image, "success (green, 0-1) and episode length (blue) per update", (left, 20),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(image, f"env steps: 0 .. {x.max():.0f}", (left, height - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    cv2.imwrite(str(tmp), image)
+    os.replace(tmp, path)
 
 
 # ================================================================================================

@@ -8,6 +8,7 @@ import cv2
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 
 import objfind as of
 
@@ -631,38 +632,41 @@ def test_perceived_share_grows_with_the_faces_seen_and_tracks_the_truth(ap_env):
         shares.append((ap_env.perceived_target_fraction(), ap_env.target_seen.mean()))
     (top, top_truth), (last, last_truth) = shares[0], shares[-1]
     assert last > top + 0.1 and last_truth > top_truth + 0.1          # more faces, more seen, in both
-    assert all(abs(p - t) < 0.15 for p, t in shares), shares
+    assert all(0.6 * t < p < t + 0.03 for p, t in shares), shares     # in step, on the safe side
 
 
-@pytest.mark.parametrize("height_m", [0.08, 0.3])
-def test_a_view_from_straight_above_perceives_one_face_of_six(ap_env, height_m):
-    # The top face is exactly a sixth of a cube's surface; the seen area, not a voxel count, measures
-    # it, near or far (a count of marked voxels read 0.19-0.21 here and stopped the searchers early).
+@pytest.mark.parametrize("height_m, low", [(0.08, 1 / 6 - 0.015), (0.3, 0.12)])
+def test_a_view_from_straight_above_perceives_one_face_of_six(ap_env, height_m, low):
+    # The top face is exactly a sixth of a cube's surface. The seen area measures it, less half of
+    # the outline pixels (more of them far away); a count of marked voxels read 0.19-0.21 here and
+    # stopped the searchers early.
     seed_with(ap_env, target_present=True)
     pos = np.array(ap_env.sim.getBasePositionAndOrientation(ap_env.objects[0].body)[0])
     ap_env.volume.reset()
     camera_z = pos[2] + ap_env.s.object_size_m / 2 + height_m
     ap_env._teleport(np.r_[pos[:2], camera_z - ap_env.s.camera_offset_m], of.gripper_rotation(0.0, 0.0))
     ap_env._observe()
-    assert abs(ap_env.perceived_target_fraction() - 1 / 6) < 0.02
+    assert low < ap_env.perceived_target_fraction() <= 1 / 6 + 0.005
 
 
-def test_perceived_share_is_unbiased_over_random_views(ap_env):
-    errors = []
+def test_perceived_share_is_conservative_over_random_views(ap_env):
+    perceived, truth = [], []
     rng = np.random.default_rng(0)
-    for seed in range(30):
+    for seed in range(60):
         _, info = ap_env.reset(seed=seed)
         for _ in range(4):
             ap_env.volume.reset()
             ap_env.target_seen[:] = False
             ap_env._observe()
-            truth = ap_env.target_seen.mean() if info["target_present"] else 0.0
-            if truth > 0.05:
-                errors.append(ap_env.perceived_target_fraction() - truth)
+            if info["target_present"] and ap_env.target_seen.mean() > 0.05:
+                perceived.append(ap_env.perceived_target_fraction())
+                truth.append(ap_env.target_seen.mean())
             ap_env.step(np.r_[rng.uniform(-1, 1, 5), -1.0])
-    errors = np.array(errors)
-    # far views resolve a cube in a few pixels, so single errors reach 0.1; the mean stays near zero
-    assert len(errors) >= 30 and abs(errors.mean()) < 0.03 and errors.std() < 0.08, errors
+    perceived, truth = np.array(perceived), np.array(truth)
+    errors = perceived - truth
+    assert len(errors) >= 30 and -0.12 < errors.mean() < 0.0, errors
+    claims = perceived >= 0.2                  # where a searcher would stop: rarely short of the truth
+    assert claims.sum() >= 10 and np.mean(truth[claims] < 0.2) < 0.15, (perceived, truth)
 
 
 def test_ground_truth_of_a_model_uses_only_its_surface_seen_from_outside():
@@ -691,3 +695,70 @@ def test_a_mug_shows_its_inside():
     old_points, old_normals = of.sample_surface(vertices, faces, 2000, np.random.default_rng(0))
     old_to_axis = old_points.mean(0)[:2] - old_points[:, :2]
     assert np.mean(np.sum(old_normals[:, :2] * old_to_axis, axis=1) > 0.5 * np.linalg.norm(old_to_axis, axis=1)) < 0.02
+
+
+# --- PPO ---------------------------------------------------------------------------------------------
+
+class Reach(gym.Env):
+    """A 1-D reach: move a point to a goal with the first of six action values, then terminate."""
+
+    observation_space = gym.spaces.Box(-2.0, 2.0, (3,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x, self.goal, self.t = 0.0, float(self.np_random.choice([-0.8, 0.8])), 0
+        return self._obs(), {}
+
+    def _obs(self):
+        return np.array([self.x, self.goal, self.goal - self.x], np.float32)
+
+    def step(self, action):
+        self.t += 1
+        if action[5] > 0:
+            success = abs(self.goal - self.x) < 0.2
+            return self._obs(), (1.0 if success else -1.0), True, False, dict(success=success)
+        before = abs(self.goal - self.x)
+        self.x = float(np.clip(self.x + 0.2 * np.clip(action[0], -1, 1), -1, 1))
+        done = self.t >= 20
+        reward = before - abs(self.goal - self.x) - (1.0 if done else 0.0)
+        return self._obs(), reward, done, False, dict(success=False)
+
+
+TINY_PPO = of.PPOSettings(hidden=32, batch_steps=256, minibatch=64, epochs=4, learning_rate=3e-3,
+                          reward_scale=1.0, init_terminate_prob=0.05, checkpoint_every=1)
+
+
+def test_ppo_improves_the_return_of_a_tiny_reach_task(tmp_path):
+    result = of.train(Reach, tmp_path, total_steps=256 * 25, p=TINY_PPO, progress=False)
+    returns = [float(r["return"]) for r in result["log"]]
+    assert np.mean(returns[-5:]) > np.mean(returns[:3]) + 0.5, returns
+    assert (tmp_path / "checkpoint.pt").exists() and (tmp_path / "curve.png").exists()
+    assert len(of.read_train_log(tmp_path / "log.csv")) == 25
+
+
+def test_a_resumed_run_repeats_the_next_update_exactly(tmp_path):
+    straight = of.train(Reach, tmp_path / "a", total_steps=256 * 3, p=TINY_PPO, progress=False)
+    of.train(Reach, tmp_path / "b", total_steps=256 * 2, p=TINY_PPO, progress=False)
+    resumed = of.train(Reach, tmp_path / "b", total_steps=256 * 3, p=TINY_PPO, progress=False, resume=True)
+    for (name, a), b in zip(straight["model"].state_dict().items(), resumed["model"].state_dict().values()):
+        assert torch.equal(a, b), name
+    same = lambda row: {k: v for k, v in row.items() if k != "wall_s"}
+    assert same(straight["log"][-1]) == same(resumed["log"][-1])
+
+
+def test_a_killed_checkpoint_write_leaves_the_last_checkpoint_readable(tmp_path):
+    of.train(Reach, tmp_path, total_steps=256, p=TINY_PPO, progress=False)
+    (tmp_path / "checkpoint.pt.tmp").write_bytes(b"half a file")       # a write that was killed
+    assert of.read_checkpoint(tmp_path / "checkpoint.pt")["update"] == 1
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes((tmp_path / "checkpoint.pt").read_bytes()[:200])
+    with pytest.raises(of.UsageError):
+        of.read_checkpoint(truncated)
+
+
+def test_the_policy_maps_a_state_to_a_valid_action():
+    model = of.ActorCritic(71, of.PPOSettings())
+    agent = of.PPOAgent(dict(obs_dim=71, settings=vars(of.PPOSettings()), model=model.state_dict()))
+    action = agent.act(np.random.default_rng(0).normal(size=71).astype(np.float32), None)
+    assert action.shape == (6,) and np.all(np.abs(action) <= 1) and action[5] == -1.0   # rarely terminates
