@@ -1688,8 +1688,7 @@ LEARNED = ("a3de", "i3de")
 def make_agent(name: str, seed: int, weights: Path | None = None):
     """A fresh agent for one episode, its randomness seeded by the episode's seed."""
     if name in LEARNED:
-        read_checkpoint(weights or Path("weights") / f"{name}.pt")
-        raise UsageError(f"{name}: the PPO policy that runs these weights is not part of objfind yet")
+        return PPOAgent(read_checkpoint(weights or Path("weights") / f"{name}.pt"))
     agent = BASELINES[name]()
     if hasattr(agent, "rng"):
         agent.rng = np.random.default_rng(seed)
@@ -1712,11 +1711,11 @@ def run_episode(env: ObjectFindingEnv, agent, seed: int) -> dict:
                 decision_ms=round(1e3 * decide_s / info["steps"], 3))
 
 
-def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list) -> list:
+def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list, weights: Path | None = None) -> list:
     """Episodes of one worker process (one env, one fresh agent per episode)."""
     env = ObjectFindingEnv(task, scene)
     try:
-        return [run_episode(env, make_agent(agent_name, seed), seed) for seed in seeds]
+        return [run_episode(env, make_agent(agent_name, seed, weights), seed) for seed in seeds]
     finally:
         env.close()
 
@@ -1732,12 +1731,12 @@ def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 
     rows = []
     if workers <= 1:
         for chunk in chunks:
-            rows += evaluate_chunk(agent_name, task, scene, chunk)
+            rows += evaluate_chunk(agent_name, task, scene, chunk, weights)
             bar.update(len(chunk))
     else:
         import multiprocessing
         with multiprocessing.get_context("spawn").Pool(workers) as pool:
-            jobs = [pool.apply_async(evaluate_chunk, (agent_name, task, scene, c)) for c in chunks]
+            jobs = [pool.apply_async(evaluate_chunk, (agent_name, task, scene, c, weights)) for c in chunks]
             for job in jobs:
                 rows += job.get()
                 bar.update(len(rows) - bar.n)
@@ -1899,10 +1898,11 @@ def demo_frame(env: ObjectFindingEnv, state: np.ndarray, text: str) -> np.ndarra
                            volume_panel(env.volume, env.gripper_pose()), bins_panel(state)], axis=1)
 
 
-def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path) -> tuple[Path, Path, dict]:
+def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
+             weights: Path | None = None) -> tuple[Path, Path, dict]:
     """One episode to an MP4 (every step) and a PNG contact sheet (four moments of it)."""
+    agent = make_agent(agent_name, seed, weights)
     env = ObjectFindingEnv(task, scene, seed=seed)
-    agent = make_agent(agent_name, seed)
     state, info = env.reset()
     agent.reset(env)
     frames = [demo_frame(env, state, f"{task}/{scene} seed {seed}: start")]
@@ -2072,7 +2072,8 @@ def output_dir(text: str) -> Path:
 
 
 def cmd_demo(args) -> int:
-    png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, output_dir(args.out))
+    weights = Path(args.weights) if args.weights else None
+    png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, output_dir(args.out), weights)
     outcome = "success" if info["success"] else "failure"
     print(f"{args.agent} on {args.task}/{args.scene} seed {args.seed}: {outcome} after {info['steps']} steps "
           f"(target seen {info['target_seen_fraction']:.2f}, explored {info['explored_fraction']:.2f})")
@@ -2089,10 +2090,11 @@ def output_file(text: str) -> Path:
 
 def print_summary(agent: str, task: str, scene: str, summary: dict) -> None:
     s = summary
+    fmt = lambda value, spec: "-" if np.isnan(value) else format(value, spec)   # a kind of scene not drawn
     print(f"{agent} on {task}/{scene}, {s['episodes']} episodes: success {s['success']:.1f} % "
           f"[{s['success_lo']:.1f}, {s['success_hi']:.1f}], steps {s['steps']:.2f} +- {s['steps_half']:.2f} "
-          f"({s['steps_with_target']:.2f} with a target), "
-          f"no-target success {s['no_target_success']:.1f} % of {s['no_target_episodes']}, "
+          f"({fmt(s['steps_with_target'], '.2f')} with a target), "
+          f"no-target success {fmt(s['no_target_success'], '.1f')} % of {s['no_target_episodes']}, "
           f"decision {s['decision_ms']:.2f} ms/step")
 
 
@@ -2139,6 +2141,20 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_train(args) -> int:
+    if args.out is None:
+        Path("runs").mkdir(exist_ok=True)
+    out = output_dir(args.out or str(Path("runs") / f"{args.task}-{args.scene}"))
+    if not args.resume and (out / "checkpoint.pt").exists():
+        raise UsageError(f"{str(out)!r} already holds a run: add --resume to continue it, or pick another --out")
+    result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
+                   workers=args.workers, seed=args.seed, resume=args.resume,
+                   meta=dict(task=args.task, scene=args.scene))
+    print(f"trained {result['env_steps']} env steps in {result['update']} updates; "
+          f"wrote {out / 'checkpoint.pt'}, {out / 'log.csv'} and {out / 'curve.png'}")
+    return 0
+
+
 def cmd_bench(args) -> int:
     print(run_bench(args.steps, args.workers, args.repeats))
     return 0
@@ -2148,12 +2164,23 @@ def build_parser() -> ArgumentParser:
     parser = ArgumentParser(prog="objfind.py", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
     demo = commands.add_parser("demo", help="one episode to a PNG contact sheet and an MP4")
-    demo.add_argument("--agent", choices=list(BASELINES), default="scripted")
+    demo.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default="scripted")
     demo.add_argument("--task", choices=list(TASKS), default="ap")
     demo.add_argument("--scene", choices=SCENES, default="cubes")
     demo.add_argument("--seed", type=count_arg, default=0)
     demo.add_argument("--out", default="out", help="output folder (its parent must exist)")
+    demo.add_argument("--weights", help="checkpoint of a learned agent (default weights/AGENT.pt)")
     demo.set_defaults(func=cmd_demo)
+    training = commands.add_parser("train", help="train A3DE (ap) or I3DE (ip) with PPO; resumable")
+    training.add_argument("--task", choices=list(TASKS), default="ap")
+    training.add_argument("--scene", choices=SCENES, default="cubes")
+    training.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1,
+                          help="env worker processes (default all cores)")
+    training.add_argument("--steps", type=positive_arg, default=2_000_000, help="env steps in all")
+    training.add_argument("--seed", type=count_arg, default=0)
+    training.add_argument("--out", help="run folder: checkpoint.pt, log.csv, curve.png (default runs/TASK-SCENE)")
+    training.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    training.set_defaults(func=cmd_train)
     evaluation = commands.add_parser("eval", help="paired evaluation episodes, or the whole Table II")
     evaluation.add_argument("--agent", choices=list(BASELINES) + list(LEARNED))
     evaluation.add_argument("--table", action="store_true", help="every cell of Table II beside the paper")

@@ -762,3 +762,27 @@ def test_the_policy_maps_a_state_to_a_valid_action():
     agent = of.PPOAgent(dict(obs_dim=71, settings=vars(of.PPOSettings()), model=model.state_dict()))
     action = agent.act(np.random.default_rng(0).normal(size=71).astype(np.float32), None)
     assert action.shape == (6,) and np.all(np.abs(action) <= 1) and action[5] == -1.0   # rarely terminates
+
+
+def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(b"PK\x03\x04 cut short")
+    (tmp_path / "run").mkdir()
+    of.save_checkpoint(tmp_path / "run" / "checkpoint.pt", {"format": "objfind-ppo", "update": 0})
+    cases = (["train", "--resume", "--out", str(tmp_path / "empty")],          # nothing to resume
+             ["train", "--out", str(tmp_path / "run")],                          # would overwrite a run
+             ["train", "--out", str(tmp_path / "no" / "such" / "dir")],
+             ["demo", "--agent", "a3de", "--weights", str(truncated)],
+             ["eval", "--agent", "a3de", "--weights", str(truncated)])
+    for args in cases:
+        assert of.main(args) == 2, args
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1, args
+
+
+def test_a_policy_checkpoint_runs_as_an_eval_agent(tmp_path):
+    model = of.ActorCritic(71, of.PPOSettings())
+    path = tmp_path / "a3de.pt"
+    of.save_checkpoint(path, dict(format="objfind-ppo", model=model.state_dict(), obs_dim=71,
+                                  settings=vars(of.PPOSettings()), task="ap", scene="cubes"))
+    rows = of.evaluate("a3de", "ap", "cubes", episodes=2, workers=1, progress=False, weights=path)
+    assert len(rows) == 2 and all(1 <= r["steps"] <= 130 for r in rows)
