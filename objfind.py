@@ -1489,39 +1489,59 @@ def ppo_update(model: ActorCritic, optimizer, batch: dict, p: PPOSettings, gener
     return {k: float(np.mean(v)) for k, v in stats.items()}
 
 
-def collect_rollout(envs, model: ActorCritic, steps: int, seeds: list, generator) -> tuple[dict, list]:
-    """`steps` steps of every env from a fresh reset with `seeds`; returns the batch and the finished
-    episodes. Resetting at the start of each update makes an update a function of the weights, the
-    optimizer and the update's index alone, so a resumed run repeats it exactly."""
-    W = envs.num_envs
-    obs, _ = envs.reset(seed=seeds)
-    buf = {k: [] for k in ("obs", "raw", "logp", "values", "rewards", "dones")}
-    episodes, returns, lengths = [], np.zeros(W), np.zeros(W, int)
+def collect_rollout(env, model: ActorCritic, steps: int, env_seed: int, sample_seed: int) -> dict:
+    """`steps` steps of one env from a reset with `env_seed`, actions sampled with `sample_seed`.
+
+    Starting every update from a seeded reset makes an update a function of the weights, the
+    optimizer and the update's index alone, so a resumed run repeats it exactly. Returns (T,) arrays
+    and the episodes that finished.
+    """
+    generator = torch.Generator().manual_seed(sample_seed)
+    obs, _ = env.reset(seed=env_seed)
+    out = {k: [] for k in ("obs", "raw", "logp", "values", "rewards", "dones")}
+    episodes, ret, length = [], 0.0, 0
     for _ in range(steps):
-        obs_t = torch.as_tensor(obs, dtype=torch.float32)
+        obs_t = torch.as_tensor(obs, dtype=torch.float32)[None]
         with torch.no_grad():
             move, stop = model.distributions(obs_t)
             raw = torch.cat([move.mean + move.stddev * torch.randn(move.mean.shape, generator=generator),
                              torch.bernoulli(stop.probs, generator=generator)[:, None]], 1)
             logp, _ = model.evaluate(obs_t, raw)
-            values = model.value(obs_t)
-        obs, rewards, terminated, truncated, infos = envs.step(env_actions(raw.numpy()))
-        done = terminated | truncated
-        for k, v in (("obs", obs_t), ("raw", raw), ("logp", logp), ("values", values)):
-            buf[k].append(v)
-        buf["rewards"].append(rewards)
-        buf["dones"].append(done.astype(np.float64))
-        returns += rewards
-        lengths += 1
-        for w in np.nonzero(done)[0]:   # same-step autoreset: `obs` already starts the next episode
-            episodes.append(dict(ret=returns[w], length=lengths[w],
-                                 success=bool(infos["final_info"]["success"][w])))
-            returns[w], lengths[w] = 0.0, 0
+            value = model.value(obs_t)
+        next_obs, reward, terminated, truncated, info = env.step(env_actions(raw.numpy())[0])
+        for k, v in (("obs", obs), ("raw", raw[0].numpy()), ("logp", logp.item()), ("values", value.item()),
+                     ("rewards", reward), ("dones", float(terminated or truncated))):
+            out[k].append(v)
+        ret, length = ret + reward, length + 1
+        if terminated or truncated:
+            episodes.append(dict(ret=ret, length=length, success=bool(info["success"])))
+            (next_obs, _), ret, length = env.reset(), 0.0, 0     # the env's own seeded generator goes on
+        obs = next_obs
     with torch.no_grad():
-        last_value = model.value(torch.as_tensor(obs, dtype=torch.float32)).numpy()
-    return dict(obs=torch.stack(buf["obs"]), raw=torch.stack(buf["raw"]), logp=torch.stack(buf["logp"]),
-                values=torch.stack(buf["values"]).numpy(), rewards=np.array(buf["rewards"]),
-                dones=np.array(buf["dones"]), last_value=last_value), episodes
+        last_value = model.value(torch.as_tensor(obs, dtype=torch.float32)[None]).item()
+    batch = {k: np.array(v, np.float32) for k, v in out.items()}
+    return dict(batch, last_value=last_value, episodes=episodes)
+
+
+ROLLOUT_WORKER: dict = {}   # per worker process: its env and its copy of the policy
+
+
+def start_rollout_worker(make_env, obs_dim: int, p: PPOSettings) -> None:
+    torch.set_num_threads(1)   # one env and a small MLP per process: threads would only contend
+    ROLLOUT_WORKER.update(env=make_env(), model=ActorCritic(obs_dim, p))
+
+
+def run_rollout_worker(weights: dict, steps: int, env_seed: int, sample_seed: int) -> dict:
+    """One worker's share of a batch, with the current weights. Each worker steps its own env at its
+    own pace: lock-step workers would all wait for whichever is resetting a scene (see Speed)."""
+    model = ROLLOUT_WORKER["model"]
+    model.load_state_dict(weights)
+    return collect_rollout(ROLLOUT_WORKER["env"], model, steps, env_seed, sample_seed)
+
+
+def derived_seed(*key: int) -> int:
+    """A 32-bit seed for (run seed, update, worker, purpose): distinct streams, reproducible."""
+    return int(np.random.SeedSequence(list(key)).generate_state(1)[0])
 
 
 def save_checkpoint(path: Path, checkpoint: dict) -> None:
@@ -1537,14 +1557,13 @@ TRAIN_LOG_FIELDS = ("update", "env_steps", "episodes", "return", "success", "epi
 
 def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSettings(), workers: int = 1,
           seed: int = 0, resume: bool = False, progress: bool = True, meta: dict | None = None) -> dict:
-    """PPO on `workers` copies of make_env(); writes out_dir/checkpoint.pt every few updates and
-    out_dir/log.csv every update. With resume, continues from the checkpoint exactly."""
+    """PPO on `workers` processes, each with its own make_env(); writes out_dir/checkpoint.pt every
+    few updates and out_dir/log.csv every update. With resume, continues from the checkpoint exactly."""
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
-    envs = (gym.vector.AsyncVectorEnv([make_env] * workers, context="spawn",
-                                      autoreset_mode=gym.vector.AutoresetMode.SAME_STEP) if workers > 1 else
-            gym.vector.SyncVectorEnv([make_env], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP))
-    obs_dim = envs.single_observation_space.shape[0]
+    probe = make_env()
+    obs_dim = probe.observation_space.shape[0]
+    probe.close()
     torch.manual_seed(seed)
     model = ActorCritic(obs_dim, p)
     optimizer = torch.optim.Adam(model.parameters(), lr=p.learning_rate, eps=1e-5)
@@ -1557,33 +1576,42 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
         log_rows = [r for r in read_train_log(log_path) if int(r["update"]) <= update]   # drop the lost tail
     elif resume:
         raise UsageError(f"--resume: no checkpoint in {str(out_dir)!r}")
-    steps_per_env = max(1, p.batch_steps // workers)
+    steps_per_worker = max(1, p.batch_steps // workers)
+    if workers > 1:
+        import multiprocessing
+        pool = multiprocessing.get_context("spawn").Pool(workers, start_rollout_worker, (make_env, obs_dim, p))
+    else:
+        start_rollout_worker(make_env, obs_dim, p)
     bar = tqdm(total=total_steps, initial=min(env_steps, total_steps), unit="step", disable=not progress,
                file=sys.stderr, desc="train")
     recent = []
     try:
         while env_steps < total_steps:
             t0 = time.perf_counter()
-            generator = torch.Generator().manual_seed(seed * 1_000_003 + update)
-            seeds = [seed * 1_000_003 + update * workers + w for w in range(workers)]
-            batch, episodes = collect_rollout(envs, model, steps_per_env, seeds, generator)
-            rewards = batch["rewards"] * p.reward_scale
-            advantages, returns = gae(rewards, batch["values"], batch["dones"], batch["last_value"], p.gamma,
-                                      p.gae_lambda)
-            flat = dict(obs=batch["obs"].reshape(-1, obs_dim), raw=batch["raw"].reshape(-1, 6),
-                        logp=batch["logp"].reshape(-1),
-                        advantages=torch.as_tensor(advantages.reshape(-1), dtype=torch.float32),
-                        returns=torch.as_tensor(returns.reshape(-1), dtype=torch.float32))
-            stats = ppo_update(model, optimizer, flat, p, generator)
+            jobs = [(model.state_dict(), steps_per_worker, derived_seed(seed, update, w, 0),
+                     derived_seed(seed, update, w, 1)) for w in range(workers)]
+            parts = pool.starmap(run_rollout_worker, jobs) if workers > 1 else [run_rollout_worker(*jobs[0])]
+            episodes = [e for part in parts for e in part["episodes"]]
+            batch = {k: np.stack([part[k] for part in parts], axis=1)      # (T, W, ...) time-major
+                     for k in ("obs", "raw", "logp", "values", "rewards", "dones")}
+            batch["last_value"] = np.array([part["last_value"] for part in parts], np.float32)
+            advantages, returns = gae(batch["rewards"] * p.reward_scale, batch["values"], batch["dones"],
+                                      batch["last_value"], p.gamma, p.gae_lambda)
+            n = steps_per_worker * workers
+            flat = dict(obs=torch.as_tensor(batch["obs"].reshape(n, obs_dim)),
+                        raw=torch.as_tensor(batch["raw"].reshape(n, -1)),
+                        logp=torch.as_tensor(batch["logp"].reshape(n)),
+                        advantages=torch.as_tensor(advantages.reshape(n)),
+                        returns=torch.as_tensor(returns.reshape(n)))
+            stats = ppo_update(model, optimizer, flat, p, torch.Generator().manual_seed(derived_seed(seed, update)))
             update += 1
-            env_steps += steps_per_env * workers
+            env_steps += steps_per_worker * workers
             wall_s += time.perf_counter() - t0
             recent = (recent + episodes)[-200:]
-            row = dict(update=update, env_steps=env_steps, episodes=len(episodes),
-                       **{"return": np.mean([e["ret"] for e in episodes]) if episodes else np.nan},
-                       success=np.mean([e["success"] for e in episodes]) if episodes else np.nan,
-                       episode_length=np.mean([e["length"] for e in episodes]) if episodes else np.nan,
-                       **stats, wall_s=wall_s)
+            mean = lambda key: float(np.mean([e[key] for e in episodes])) if episodes else float("nan")
+            row = dict(update=update, env_steps=env_steps, episodes=len(episodes), success=mean("success"),
+                       episode_length=mean("length"), **stats, wall_s=wall_s)
+            row["return"] = mean("ret")
             log_rows.append({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
             write_train_log(log_rows, log_path)
             if update % p.checkpoint_every == 0 or env_steps >= total_steps:
@@ -1593,11 +1621,13 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
                                                 settings=vars(p).copy(), **(meta or {})))
                 plot_learning_curve(log_rows, out_dir / "curve.png")
             bar.update(min(env_steps, total_steps) - bar.n)
-            bar.set_postfix(steps_per_s=f"{steps_per_env * workers / (time.perf_counter() - t0):.0f}",
+            bar.set_postfix(steps_per_s=f"{steps_per_worker * workers / (time.perf_counter() - t0):.0f}",
                             success=f"{np.mean([e['success'] for e in recent]) if recent else 0:.2f}")
     finally:
         bar.close()
-        envs.close()
+        if workers > 1:
+            pool.terminate()
+        ROLLOUT_WORKER.get("env") and ROLLOUT_WORKER.pop("env").close()
     return dict(update=update, env_steps=env_steps, model=model, log=log_rows)
 
 

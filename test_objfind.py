@@ -8,9 +8,10 @@ import cv2
 import gymnasium as gym
 import numpy as np
 import pytest
-import torch
 
 import objfind as of
+
+torch = of.torch   # imported by objfind after it limits BLAS threads
 
 HERE = Path(__file__).resolve().parent
 
