@@ -6,11 +6,13 @@ target among (active task) or inside piles of (interactive task) objects. Each v
 TSDF volume with a detection channel, the volume is summarised into the 71 numbers of the paper's
 Fig. 2, and an agent picks the next gripper displacement.
 
-Read top to bottom: settings, perception, volume, encoder, simulation, agents, command line.
+Read top to bottom: settings, perception, volume, encoder, simulation, agents, learned agents (PPO),
+evaluation, command line.
 
     python objfind.py demo --agent scripted     # one episode -> PNG contact sheet + MP4
     python objfind.py eval --agent gnbv         # paired episodes: success, steps, decision time
     python objfind.py eval --table              # Table II beside the paper's figures
+    python objfind.py train --task ap           # PPO for A3DE, resumable -> runs/ap-cubes/
     python objfind.py bench                     # per-stage milliseconds and env steps/s
 """
 from __future__ import annotations
@@ -2063,7 +2065,7 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
     return "\n".join(lines + throughput)
 
 # ================================================================================================
-# Command line: demo, eval and bench. Bad input ends with one line and exit status 2.
+# Command line: demo, eval, train and bench. Bad input ends with one line and exit status 2.
 # ================================================================================================
 
 
