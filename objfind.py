@@ -18,6 +18,7 @@ evaluation, command line.
 from __future__ import annotations
 
 import argparse
+import csv
 import functools
 import os
 import re
@@ -132,8 +133,7 @@ class Settings:
 
     @property
     def nominal_target_voxels(self) -> float:
-        """Surface voxels of a fully seen nominal cube: its area in voxel faces (about one marked
-        voxel per voxel face of surface seen, counting each face on its own)."""
+        """The nominal cube's surface in voxel faces: the encoder's scale for the detection sum."""
         return 6 * (self.object_size_m / self.voxel_m) ** 2
 
 
@@ -382,9 +382,11 @@ class TSDFVolume:
         # The surface a pixel covers is |dP/du x dP/dv| for P the back-projected depth image, each
         # derivative taken towards the neighbour on the same surface (the smaller one-sided
         # difference), so pixels along the target's outline do not borrow the depth jump to the
-        # background; it is capped where both sides jump (a sliver). Each pixel is split into 2 x 2
-        # sub-pixels carrying a quarter of its area, so that area lands in the right voxel even when
-        # a pixel is as large as a voxel (far views).
+        # background. A pixel seeing its surface more obliquely than the ground truth's limit counts
+        # nothing; a pixel on the outline of the detections, partly target at best (or a sliver of a
+        # face seen nearly edge-on), counts half. Each pixel is split into 2 x 2 sub-pixels carrying
+        # a quarter of its area, so that area lands in the right voxel even when a pixel is as large
+        # as a voxel (far views).
         H, W = depth_m.shape
         rows, cols = np.mgrid[0:H, 0:W] + 0.5
         P = np.stack([(cols - K[0, 2]) / K[0, 0] * depth_m, (rows - K[1, 2]) / K[1, 1] * depth_m, depth_m], -1)
@@ -647,9 +649,9 @@ def exterior_surface(urdf_path: str, scale: float, candidates: int = 8000, views
     """Points on the part of a mesh model's surface that can be seen from outside, their normals
     (turned towards a camera that sees them), and that part's area. Cached per model.
 
-    Household meshes are unions of convex pieces (teddy, duck) or have faces no view reaches (a
-    lego's studs inside its underside): ground truth sampled on all faces counts surface nobody can
-    see. The model alone is rendered from `views` directions around it; a candidate point is kept
+    Household meshes can be unions of overlapping convex pieces (the teddy): ground truth sampled on
+    all faces counts surface buried inside, which nobody can see. A hollow shape's inside (the mug's)
+    is real surface, but its normal, turned away from the centroid, would face away from any camera. The model alone is rendered from `views` directions around it; a candidate point is kept
     when some view sees it unoccluded and not edge-on.
     """
     key = (urdf_path, scale, candidates)
@@ -1615,7 +1617,7 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
                        episode_length=mean("length"), **stats, wall_s=wall_s)
             row["return"] = mean("ret")
             log_rows.append({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
-            write_train_log(log_rows, log_path)
+            write_csv(log_rows, log_path, TRAIN_LOG_FIELDS)
             if update % p.checkpoint_every == 0 or env_steps >= total_steps:
                 save_checkpoint(ckpt_path, dict(format="objfind-ppo", model=model.state_dict(),
                                                 optimizer=optimizer.state_dict(), update=update,
@@ -1634,21 +1636,10 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
 
 
 def read_train_log(path: Path) -> list:
-    import csv
     if not path.exists():
         return []
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
-
-
-def write_train_log(rows: list, path: Path) -> None:
-    import csv
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=TRAIN_LOG_FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp, path)
 
 
 def plot_learning_curve(rows: list, path: Path, width: int = 640, height: int = 360) -> None:
@@ -1801,12 +1792,12 @@ def summarise(rows: list) -> dict:
                 decision_ms=float(np.mean([r["decision_ms"] for r in rows])))
 
 
-def write_csv(rows: list, path: Path) -> None:
-    """Every episode's row, written to a temporary file and renamed, so a killed run leaves no half file."""
-    import csv
+def write_csv(rows: list, path: Path, fields: tuple | None = None) -> None:
+    """Rows (episodes, or updates of a training log) written to a temporary file and renamed, so a
+    killed run leaves no half-written file."""
     tmp = path.with_suffix(path.suffix + ".tmp")
     with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(f, fieldnames=list(fields or rows[0]))
         writer.writeheader()
         writer.writerows(rows)
     os.replace(tmp, path)
@@ -1814,7 +1805,6 @@ def write_csv(rows: list, path: Path) -> None:
 
 def read_csv(path: Path, seeds: list) -> list | None:
     """The rows of an earlier run of exactly these seeds, or None (then the cell is run again)."""
-    import csv
     if not path.is_file():
         return None
     with open(path, newline="") as f:
