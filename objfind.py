@@ -608,6 +608,12 @@ def cylinder_mesh(radius: float, height: float, segments: int = 16) -> tuple[np.
     return v, f
 
 
+def mesh_area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Surface area of a triangle mesh (m^2)."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    return 0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+
+
 def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator):
     """(n, 3) points uniformly on a triangle mesh's surface and their (n, 3) outward unit normals.
 
@@ -651,8 +657,9 @@ def exterior_surface(urdf_path: str, scale: float, candidates: int = 8000, views
 
     Household meshes can be unions of overlapping convex pieces (the teddy): ground truth sampled on
     all faces counts surface buried inside, which nobody can see. A hollow shape's inside (the mug's)
-    is real surface, but its normal, turned away from the centroid, would face away from any camera. The model alone is rendered from `views` directions around it; a candidate point is kept
-    when some view sees it unoccluded and not edge-on.
+    is real surface, but its normal, turned away from the centroid, would face away from any camera.
+    The model alone is rendered from `views` directions around it; a candidate point is kept when
+    some view sees it unoccluded and not edge-on.
     """
     key = (urdf_path, scale, candidates)
     if key not in EXTERIOR_CACHE:
@@ -682,13 +689,13 @@ def exterior_surface(urdf_path: str, scale: float, candidates: int = 8000, views
                 cos = normals @ d                           # d points from the model to the camera
                 slack = footprint / np.maximum(np.abs(cos), 0.15) + 0.01 * radius
                 visible = (np.abs(depth[v, u] - cam[:, 2]) < slack) & (np.abs(cos) > 0.15)
-                seen_from[visible & (seen_from == 0)] = np.sign(cos[visible & (seen_from == 0)])
+                first = visible & (seen_from == 0)
+                seen_from[first] = np.sign(cos[first])
         finally:
             sim.disconnect()
-        a, b, c = (vertices[faces[:, k]] for k in range(3))
-        area = 0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
         keep = seen_from != 0
-        EXTERIOR_CACHE[key] = (points[keep], normals[keep] * seen_from[keep, None], area * keep.mean())
+        EXTERIOR_CACHE[key] = (points[keep], normals[keep] * seen_from[keep, None],
+                               mesh_area(vertices, faces) * keep.mean())
     return EXTERIOR_CACHE[key]
 
 
@@ -957,8 +964,7 @@ class ObjectFindingEnv(gym.Env):
             if target.model is None:     # a convex primitive: all of its surface can be seen
                 self.target_points, self.target_normals = sample_surface(target.vertices, target.faces,
                                                                          s.surface_points, rng)
-                a, b, c = (target.vertices[target.faces[:, k]] for k in range(3))
-                self.target_area_m2 = 0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+                self.target_area_m2 = mesh_area(target.vertices, target.faces)
             else:
                 points, normals, self.target_area_m2 = exterior_surface(*target.model)
                 pick = rng.choice(len(points), s.surface_points, replace=False)
