@@ -164,6 +164,7 @@ class PPOSettings:
     reward_scale: float = 1 / 150      # rewards divided by r_d: returns of order one for the critic
     init_log_std: float = -0.5         # initial std 0.6 of the five displacements (the Box is [-1, 1])
     init_terminate_prob: float = 0.02  # a fresh policy that terminated half the time would never look
+    obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
 
 # ================================================================================================
@@ -1402,12 +1403,20 @@ class GridExhaustiveSearch:
 
 class ActorCritic(nn.Module):
     """Actor and critic MLPs (2 x 200, tanh). The actor gives the means of a Gaussian over the five
-    displacements (state-independent std) and the logit of a Bernoulli "terminate"."""
+    displacements (state-independent std) and the logit of a Bernoulli "terminate".
+
+    Both see the observation standardised by a running mean and variance kept in buffers, so they are
+    saved with the weights: the 71 values span scales from 1e-3 (a far bin) to 1 (the roll).
+    """
 
     moves = 5
 
     def __init__(self, obs_dim: int, p: PPOSettings):
         super().__init__()
+        self.obs_clip = p.obs_clip
+        self.register_buffer("obs_mean", torch.zeros(obs_dim))
+        self.register_buffer("obs_var", torch.ones(obs_dim))
+        self.register_buffer("obs_count", torch.tensor(0.0))
         def mlp(out: int) -> nn.Sequential:
             return nn.Sequential(nn.Linear(obs_dim, p.hidden), nn.Tanh(), nn.Linear(p.hidden, p.hidden),
                                  nn.Tanh(), nn.Linear(p.hidden, out))
@@ -1418,13 +1427,26 @@ class ActorCritic(nn.Module):
             self.actor[-1].bias.zero_()
             self.actor[-1].bias[-1] = float(np.log(p.init_terminate_prob / (1 - p.init_terminate_prob)))
 
+    def normalise(self, obs: torch.Tensor) -> torch.Tensor:
+        return ((obs - self.obs_mean) / (self.obs_var + 1e-8).sqrt()).clamp(-self.obs_clip, self.obs_clip)
+
+    @torch.no_grad()
+    def update_obs_stats(self, obs: torch.Tensor) -> None:
+        """Merge a batch's mean and variance into the running ones (Chan et al.'s parallel formula)."""
+        n, mean, var = len(obs), obs.mean(0), obs.var(0, unbiased=False)
+        total = self.obs_count + n
+        delta = mean - self.obs_mean
+        self.obs_var.copy_((self.obs_var * self.obs_count + var * n + delta ** 2 * self.obs_count * n / total) / total)
+        self.obs_mean.add_(delta * n / total)
+        self.obs_count.copy_(total)
+
     def distributions(self, obs: torch.Tensor):
-        out = self.actor(obs)
+        out = self.actor(self.normalise(obs))
         return (torch.distributions.Normal(out[:, :self.moves], self.log_std.exp()),
                 torch.distributions.Bernoulli(logits=out[:, self.moves]))
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.critic(obs)[:, 0]
+        return self.critic(self.normalise(obs))[:, 0]
 
     def evaluate(self, obs: torch.Tensor, raw: torch.Tensor):
         """Log-probability and entropy of raw actions (5 displacements, terminate bit) under the policy."""
@@ -1614,6 +1636,7 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
                         advantages=torch.as_tensor(advantages.reshape(n)),
                         returns=torch.as_tensor(returns.reshape(n)))
             stats = ppo_update(model, optimizer, flat, p, torch.Generator().manual_seed(derived_seed(seed, update)))
+            model.update_obs_stats(flat["obs"])   # after the update, whose ratios need the rollout's scale
             update += 1
             env_steps += steps_per_worker * workers
             wall_s += time.perf_counter() - t0

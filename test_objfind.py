@@ -758,6 +758,17 @@ def test_a_killed_checkpoint_write_leaves_the_last_checkpoint_readable(tmp_path)
         of.read_checkpoint(truncated)
 
 
+def test_the_observation_normaliser_matches_the_statistics_of_all_batches_seen():
+    model = of.ActorCritic(3, TINY_PPO)
+    batches = [torch.randn(n, 3) * torch.tensor([0.01, 1.0, 30.0]) + 5.0 for n in (7, 100, 33)]
+    for batch in batches:
+        model.update_obs_stats(batch)
+    everything = torch.cat(batches)
+    assert torch.allclose(model.obs_mean, everything.mean(0), rtol=1e-4)
+    assert torch.allclose(model.obs_var, everything.var(0, unbiased=False), rtol=1e-3)
+    assert model.normalise(everything).std(0).sub(1).abs().max() < 0.05   # each input now at unit scale
+
+
 def test_the_policy_maps_a_state_to_a_valid_action():
     model = of.ActorCritic(71, of.PPOSettings())
     agent = of.PPOAgent(dict(obs_dim=71, settings=vars(of.PPOSettings()), model=model.state_dict()))
