@@ -1593,9 +1593,8 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
     few updates and out_dir/log.csv every update. With resume, continues from the checkpoint exactly."""
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
-    probe = make_env()
-    obs_dim = probe.observation_space.shape[0]
-    probe.close()
+    env = make_env()   # the single worker's env, or only asked for the observation size
+    obs_dim = env.observation_space.shape[0]
     torch.manual_seed(seed)
     model = ActorCritic(obs_dim, p)
     optimizer = torch.optim.Adam(model.parameters(), lr=p.learning_rate, eps=1e-5)
@@ -1611,9 +1610,10 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
     steps_per_worker = max(1, p.batch_steps // workers)
     if workers > 1:
         import multiprocessing
+        env.close()
         pool = multiprocessing.get_context("spawn").Pool(workers, start_rollout_worker, (make_env, obs_dim, p))
     else:
-        start_rollout_worker(make_env, obs_dim, p)
+        start_rollout_worker(lambda: env, obs_dim, p)
     bar = tqdm(total=total_steps, initial=min(env_steps, total_steps), unit="step", disable=not progress,
                file=sys.stderr, desc="train")
     recent = []
