@@ -1737,10 +1737,15 @@ BASELINES = {"random": RandomAgent, "scripted": ScriptedAgent, "gnbv": GreedyNex
 LEARNED = ("a3de", "i3de")
 
 
-def make_agent(name: str, seed: int, weights: Path | None = None):
+def default_weights(agent: str, task: str) -> Path:
+    """The shipped weights of a learned agent: weights/a3de.pt, weights/a3de-large.pt, weights/i3de.pt."""
+    return Path(__file__).resolve().parent / "weights" / (f"{agent}-large.pt" if task == "ap-large" else f"{agent}.pt")
+
+
+def make_agent(name: str, seed: int, weights: Path | None = None, task: str = "ap"):
     """A fresh agent for one episode, its randomness seeded by the episode's seed."""
     if name in LEARNED:
-        return PPOAgent(read_checkpoint(weights or Path("weights") / f"{name}.pt"))
+        return PPOAgent(read_checkpoint(weights or default_weights(name, task)))
     agent = BASELINES[name]()
     if hasattr(agent, "rng"):
         agent.rng = np.random.default_rng(seed)
@@ -1767,7 +1772,7 @@ def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list, weights:
     """Episodes of one worker process (one env, one fresh agent per episode)."""
     env = ObjectFindingEnv(task, scene)
     try:
-        return [run_episode(env, make_agent(agent_name, seed, weights), seed) for seed in seeds]
+        return [run_episode(env, make_agent(agent_name, seed, weights, task), seed) for seed in seeds]
     finally:
         env.close()
 
@@ -1775,7 +1780,7 @@ def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list, weights:
 def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 0, workers: int = 1,
              progress: bool = True, weights: Path | None = None) -> list:
     """Paired episodes: episode i is scene seed + i for every agent. Rows in seed order."""
-    make_agent(agent_name, seed, weights)   # fail early, in the parent, on an agent that cannot run
+    make_agent(agent_name, seed, weights, task)   # fail early, in the parent, on an agent that cannot run
     seeds = list(range(seed, seed + episodes))
     chunks = [seeds[i:i + 5] for i in range(0, episodes, 5)]
     bar = tqdm(total=episodes, desc=f"{agent_name} {task}/{scene}", unit="ep", disable=not progress,
@@ -1952,7 +1957,7 @@ def demo_frame(env: ObjectFindingEnv, state: np.ndarray, text: str) -> np.ndarra
 def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
              weights: Path | None = None) -> tuple[Path, Path, dict]:
     """One episode to an MP4 (every step) and a PNG contact sheet (four moments of it)."""
-    agent = make_agent(agent_name, seed, weights)
+    agent = make_agent(agent_name, seed, weights, task)
     env = ObjectFindingEnv(task, scene, seed=seed)
     state, info = env.reset()
     agent.reset(env)
@@ -2211,6 +2216,9 @@ def cmd_bench(args) -> int:
     return 0
 
 
+WEIGHTS_HELP = "a learned agent's checkpoint (default: weights/AGENT.pt, AGENT-large.pt on ap-large)"
+
+
 def build_parser() -> ArgumentParser:
     parser = ArgumentParser(prog="objfind.py", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -2220,7 +2228,7 @@ def build_parser() -> ArgumentParser:
     demo.add_argument("--scene", choices=SCENES, default="cubes")
     demo.add_argument("--seed", type=count_arg, default=0)
     demo.add_argument("--out", default="out", help="output folder (its parent must exist)")
-    demo.add_argument("--weights", help="checkpoint of a learned agent (default weights/AGENT.pt)")
+    demo.add_argument("--weights", help=WEIGHTS_HELP)
     demo.set_defaults(func=cmd_demo)
     training = commands.add_parser("train", help="train A3DE (ap) or I3DE (ip) with PPO; resumable")
     training.add_argument("--task", choices=list(TASKS), default="ap")
@@ -2242,7 +2250,7 @@ def build_parser() -> ArgumentParser:
     evaluation.add_argument("--seed", type=count_arg, default=0, help="episode i uses scene seed + i")
     evaluation.add_argument("--from-csv", action="store_true",
                             help="with --table: only read cells already run, print '-' for the others")
-    evaluation.add_argument("--weights", help="checkpoint of a learned agent (default weights/AGENT.pt)")
+    evaluation.add_argument("--weights", help=WEIGHTS_HELP)
     evaluation.add_argument("--out", help="CSV of every episode (with --table: a folder, default results)")
     evaluation.set_defaults(func=cmd_eval)
     bench = commands.add_parser("bench", help="per-stage step time and env steps/s")
