@@ -1472,10 +1472,10 @@ class PPOAgent:
         pass
 
     def act(self, obs, env) -> np.ndarray:
-        with torch.no_grad():
-            move, stop = self.model.distributions(torch.as_tensor(obs, dtype=torch.float32)[None])
-            raw = torch.cat([move.mean, (stop.probs > 0.5).float()[:, None]], 1).numpy()
-        return env_actions(raw)[0]
+        with torch.no_grad():   # the actor's raw output: the Gaussian's means, then the terminate logit
+            out = self.model.actor(self.model.normalise(torch.as_tensor(obs, dtype=torch.float32)[None])).numpy()
+        out[:, -1] = out[:, -1] > 0.0   # p > 0.5
+        return env_actions(out)[0]
 
 
 def gae(rewards, values, dones, last_value, gamma: float, lam: float):

@@ -791,6 +791,19 @@ def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
         assert len(capsys.readouterr().err.strip().splitlines()) == 1, args
 
 
+@pytest.mark.parametrize("name", ["a3de.pt"])
+def test_the_shipped_weights_load_and_act(name):
+    checkpoint = of.read_checkpoint(Path(of.__file__).parent / "weights" / name)
+    assert checkpoint["obs_dim"] == 71 and checkpoint["env_steps"] > 0
+    agent = of.PPOAgent(checkpoint)
+    env = of.ObjectFindingEnv("ap", "cubes", seed=3)
+    obs, _ = env.reset()
+    action = agent.act(obs, env)
+    assert action.shape == (6,) and np.all(np.abs(action) <= 1) and abs(action[5]) == 1.0
+    assert checkpoint["model"]["obs_count"].item() > 0          # trained: the normaliser has seen batches
+    env.close()
+
+
 def test_a_policy_checkpoint_runs_as_an_eval_agent(tmp_path):
     model = of.ActorCritic(71, of.PPOSettings())
     path = tmp_path / "a3de.pt"
