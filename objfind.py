@@ -2223,7 +2223,7 @@ def build_parser() -> ArgumentParser:
     parser = ArgumentParser(prog="objfind.py", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
     demo = commands.add_parser("demo", help="one episode to a PNG contact sheet and an MP4")
-    demo.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default="scripted")
+    demo.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default="a3de")
     demo.add_argument("--task", choices=list(TASKS), default="ap")
     demo.add_argument("--scene", choices=SCENES, default="cubes")
     demo.add_argument("--seed", type=count_arg, default=0)

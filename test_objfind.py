@@ -804,6 +804,11 @@ def test_the_shipped_weights_load_and_act(name):
     env.close()
 
 
+def test_demo_runs_the_shipped_a3de_by_default(tmp_path):
+    assert of.main(["demo", "--seed", "1", "--out", str(tmp_path / "demo")]) == 0
+    assert (tmp_path / "demo" / "demo-ap-cubes-a3de.png").exists()
+
+
 def test_a_policy_checkpoint_runs_as_an_eval_agent(tmp_path):
     model = of.ActorCritic(71, of.PPOSettings())
     path = tmp_path / "a3de.pt"
