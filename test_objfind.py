@@ -791,7 +791,7 @@ def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
         assert len(capsys.readouterr().err.strip().splitlines()) == 1, args
 
 
-@pytest.mark.parametrize("name", ["a3de.pt"])
+@pytest.mark.parametrize("name", ["a3de.pt", "a3de-large.pt"])
 def test_the_shipped_weights_load_and_act(name):
     checkpoint = of.read_checkpoint(Path(of.__file__).parent / "weights" / name)
     assert checkpoint["obs_dim"] == 71 and checkpoint["env_steps"] > 0
