@@ -1742,10 +1742,15 @@ def default_weights(agent: str, task: str) -> Path:
     return Path(__file__).resolve().parent / "weights" / (f"{agent}-large.pt" if task == "ap-large" else f"{agent}.pt")
 
 
+def load_agent(path: Path) -> PPOAgent:
+    """A trained policy from its checkpoint (torch.load with weights_only=True), as an eval agent."""
+    return PPOAgent(read_checkpoint(Path(path)))
+
+
 def make_agent(name: str, seed: int, weights: Path | None = None, task: str = "ap"):
     """A fresh agent for one episode, its randomness seeded by the episode's seed."""
     if name in LEARNED:
-        return PPOAgent(read_checkpoint(weights or default_weights(name, task)))
+        return load_agent(weights or default_weights(name, task))
     agent = BASELINES[name]()
     if hasattr(agent, "rng"):
         agent.rng = np.random.default_rng(seed)

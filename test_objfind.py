@@ -795,7 +795,7 @@ def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
 def test_the_shipped_weights_load_and_act(name):
     checkpoint = of.read_checkpoint(Path(of.__file__).parent / "weights" / name)
     assert checkpoint["obs_dim"] == 71 and checkpoint["env_steps"] > 0
-    agent = of.PPOAgent(checkpoint)
+    agent = of.load_agent(Path(of.__file__).parent / "weights" / name)
     env = of.ObjectFindingEnv("ap", "cubes", seed=3)
     obs, _ = env.reset()
     action = agent.act(obs, env)
