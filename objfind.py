@@ -1440,8 +1440,12 @@ class ActorCritic(nn.Module):
         self.obs_mean.add_(delta * n / total)
         self.obs_count.copy_(total)
 
+    def actor_output(self, obs: torch.Tensor) -> torch.Tensor:
+        """(N, 6): the Gaussian's five means, then the terminate logit."""
+        return self.actor(self.normalise(obs))
+
     def distributions(self, obs: torch.Tensor):
-        out = self.actor(self.normalise(obs))
+        out = self.actor_output(obs)
         return (torch.distributions.Normal(out[:, :self.moves], self.log_std.exp()),
                 torch.distributions.Bernoulli(logits=out[:, self.moves]))
 
@@ -1472,8 +1476,8 @@ class PPOAgent:
         pass
 
     def act(self, obs, env) -> np.ndarray:
-        with torch.no_grad():   # the actor's raw output: the Gaussian's means, then the terminate logit
-            out = self.model.actor(self.model.normalise(torch.as_tensor(obs, dtype=torch.float32)[None])).numpy()
+        with torch.no_grad():
+            out = self.model.actor_output(torch.as_tensor(obs, dtype=torch.float32)[None]).numpy()
         out[:, -1] = out[:, -1] > 0.0   # p > 0.5
         return env_actions(out)[0]
 
