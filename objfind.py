@@ -1592,9 +1592,11 @@ TRAIN_LOG_FIELDS = ("update", "env_steps", "episodes", "return", "success", "epi
 
 
 def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSettings(), workers: int = 1,
-          seed: int = 0, resume: bool = False, progress: bool = True, meta: dict | None = None) -> dict:
+          seed: int = 0, resume: bool = False, progress: bool = True, meta: dict | None = None,
+          init: dict | None = None) -> dict:
     """PPO on `workers` processes, each with its own make_env(); writes out_dir/checkpoint.pt every
-    few updates and out_dir/log.csv every update. With resume, continues from the checkpoint exactly."""
+    few updates and out_dir/log.csv every update. With resume, continues from the checkpoint exactly.
+    `init`, a checkpoint, warm-starts a new run from its policy, critic and observation statistics."""
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
     env = make_env()   # the single worker's env, or only asked for the observation size
@@ -1603,12 +1605,15 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
     model = ActorCritic(obs_dim, p)
     optimizer = torch.optim.Adam(model.parameters(), lr=p.learning_rate, eps=1e-5)
     update, env_steps, wall_s, log_rows = 0, 0, 0.0, []
+    if init is not None and not resume:
+        model.load_state_dict(init["model"])    # a fresh optimizer: Adam's moments belong to the old task
     if resume and ckpt_path.exists():
         checkpoint = read_checkpoint(ckpt_path)
         model.load_state_dict(checkpoint["model"])
         optimizer.load_state_dict(checkpoint["optimizer"])
         update, env_steps, wall_s, seed = (checkpoint[k] for k in ("update", "env_steps", "wall_s", "seed"))
         log_rows = [r for r in read_train_log(log_path) if int(r["update"]) <= update]   # drop the lost tail
+        meta = {**({"init": checkpoint["init"]} if "init" in checkpoint else {}), **(meta or {})}
     elif resume:
         raise UsageError(f"--resume: no checkpoint in {str(out_dir)!r}")
     steps_per_worker = max(1, p.batch_steps // workers)
@@ -2212,9 +2217,12 @@ def cmd_train(args) -> int:
     out = output_dir(args.out or str(Path("runs") / f"{args.task}-{args.scene}"))
     if not args.resume and (out / "checkpoint.pt").exists():
         raise UsageError(f"{str(out)!r} already holds a run: add --resume to continue it, or pick another --out")
+    init = read_checkpoint(Path(args.init)) if args.init and not args.resume else None
+    meta = dict(task=args.task, scene=args.scene)
+    if init is not None:
+        meta["init"] = f"{init.get('task', '?')}/{init.get('scene', '?')} update {init.get('update', '?')}"
     result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
-                   workers=args.workers, seed=args.seed, resume=args.resume,
-                   meta=dict(task=args.task, scene=args.scene))
+                   workers=args.workers, seed=args.seed, resume=args.resume, meta=meta, init=init)
     print(f"trained {result['env_steps']} env steps in {result['update']} updates; "
           f"wrote {out / 'checkpoint.pt'}, {out / 'log.csv'} and {out / 'curve.png'}")
     return 0
@@ -2248,6 +2256,7 @@ def build_parser() -> ArgumentParser:
     training.add_argument("--seed", type=count_arg, default=0)
     training.add_argument("--out", help="run folder: checkpoint.pt, log.csv, curve.png (default runs/TASK-SCENE)")
     training.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    training.add_argument("--init", help="warm-start a new run from this checkpoint's policy (I3DE from A3DE)")
     training.set_defaults(func=cmd_train)
     evaluation = commands.add_parser("eval", help="paired evaluation episodes, or the whole Table II")
     evaluation.add_argument("--agent", choices=list(BASELINES) + list(LEARNED))

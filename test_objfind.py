@@ -413,6 +413,44 @@ def test_a_push_moves_objects():
         env.close()
 
 
+def test_a_push_through_a_hand_built_pile_reveals_the_buried_target():
+    env = of.ObjectFindingEnv("ip", "cubes")
+    try:
+        seed_with(env, target_present=True)
+        sim, a = env.sim, env.s.object_size_m
+        for o in env.objects[9:]:
+            sim.removeBody(o.body)
+        env.objects = env.objects[:9]
+        # the target at the bottom centre, a cube on each side of it, four cubes on top
+        spots = [(0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0),
+                 (0.5, 0.5, 1), (-0.5, 0.5, 1), (0.5, -0.5, 1), (-0.5, -0.5, 1)]
+        for o, (x, y, layer) in zip(env.objects, spots):
+            sim.resetBasePositionAndOrientation(o.body, [1.02 * a * x, 1.02 * a * y, a / 2 + 0.001 + layer * (a + 0.002)],
+                                                [0, 0, 0, 1])
+        assert env._settle(480)
+        env.volume.reset()
+        env.target_seen[:] = False
+
+        def look() -> float:     # the same two views before and after the push
+            for xyz in ([0.0, -0.05, 0.35], [0.1, 0.0, 0.2]):
+                env._teleport(xyz, of.gripper_rotation(0.0, 0.0))
+                env._observe()
+            return float(env.target_seen.mean())
+
+        before = np.array([sim.getBasePositionAndOrientation(o.body)[0] for o in env.objects])
+        seen_before = look()
+        assert seen_before < env.s.seen_threshold                    # buried: not observed from above
+        env._teleport([-0.2, 0.0, 0.012], of.gripper_rotation(0.0, 0.0))
+        for _ in range(7):                                           # through the pile's centre along +x
+            env.step(np.array([1.0, 0, 0, 0, 0, -1]))
+        after = np.array([sim.getBasePositionAndOrientation(o.body)[0] for o in env.objects])
+        assert np.count_nonzero(np.linalg.norm(after - before, axis=1) > 0.02) >= 4   # the pile came apart
+        seen_after = look()
+        assert seen_after > seen_before + 0.1 and seen_after >= env.s.seen_threshold
+    finally:
+        env.close()
+
+
 def test_vector_env_over_worker_processes():
     import functools
     fns = [functools.partial(of.ObjectFindingEnv, "ap", "cubes", i) for i in range(2)]
@@ -738,6 +776,19 @@ def test_ppo_improves_the_return_of_a_tiny_reach_task(tmp_path):
     assert len(of.read_train_log(tmp_path / "log.csv")) == 25
 
 
+def test_a_warm_start_begins_from_the_trained_policy(tmp_path):
+    trained = of.train(Reach, tmp_path / "a", total_steps=256 * 20, p=TINY_PPO, progress=False)
+    init = of.read_checkpoint(tmp_path / "a" / "checkpoint.pt")
+    warm = of.train(Reach, tmp_path / "b", total_steps=256, p=TINY_PPO, progress=False, seed=1, init=init,
+                    meta=dict(init="reach"))
+    fresh = of.train(Reach, tmp_path / "c", total_steps=256, p=TINY_PPO, progress=False, seed=1)
+    first = lambda result: float(result["log"][0]["return"])
+    assert first(warm) > first(fresh) + 0.5, (first(warm), first(fresh), trained["log"][-1])
+    checkpoint = of.read_checkpoint(tmp_path / "b" / "checkpoint.pt")
+    assert checkpoint["update"] == 1 and checkpoint["init"] == "reach"       # a new run, its origin recorded
+    assert checkpoint["model"]["obs_count"] > init["model"]["obs_count"]     # the statistics carried over
+
+
 def test_a_resumed_run_repeats_the_next_update_exactly(tmp_path):
     straight = of.train(Reach, tmp_path / "a", total_steps=256 * 3, p=TINY_PPO, progress=False)
     of.train(Reach, tmp_path / "b", total_steps=256 * 2, p=TINY_PPO, progress=False)
@@ -784,6 +835,7 @@ def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
     cases = (["train", "--resume", "--out", str(tmp_path / "empty")],          # nothing to resume
              ["train", "--out", str(tmp_path / "run")],                          # would overwrite a run
              ["train", "--out", str(tmp_path / "no" / "such" / "dir")],
+             ["train", "--init", str(truncated), "--out", str(tmp_path / "fresh")],    # a broken warm start
              ["demo", "--agent", "a3de", "--weights", str(truncated)],
              ["eval", "--agent", "a3de", "--weights", str(truncated)])
     for args in cases:
