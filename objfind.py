@@ -1723,6 +1723,9 @@ PAPER_TABLE_II = {   # (agent, task): {scene: (success %, average steps)}, 1000 
     ("i3de", "ip"): {"cubes": (88.0, 26.86), "fixed-primitives": (90.5, 21.22), "variable-primitives": (85.0, 30.08),
                      "random-shapes": (89.5, 20.82), "object-models": (82.1, 29.79)},
 }
+PAPER_NO_TARGET = {"a3de": 100.0, "i3de": 96.1}   # % of no-target scenes ended correctly (Sec. V-A)
+
+
 class UsageError(Exception):
     """Bad input (an unknown agent, a missing or foreign checkpoint): one line, exit status 2."""
 
@@ -1864,10 +1867,13 @@ def read_csv(path: Path, seeds: list) -> list | None:
 
 
 def table_markdown(cells: dict, episodes: int) -> str:
-    """Table II: ours ("success / steps") beside the paper's, per agent and scene kind."""
+    """Table II: ours ("success / steps") beside the paper's, per agent and scene kind, and the share of
+    no-target scenes each agent ended correctly (pooled over its cells; the paper gives it in the text)."""
     columns = [("ap", s) for s in SCENES[:1]] + [("ap-large", "cubes")] + [("ap", s) for s in SCENES[1:]]
-    header = ["agent", "cubes", "cubes, large", "fixed prim.", "variable prim.", "random shapes", "object models"]
-    lines = [f"Success % / average steps over {episodes} paired episodes per cell; the paper's below ours.", "",
+    header = ["agent", "cubes", "cubes, large", "fixed prim.", "variable prim.", "random shapes", "object models",
+              "no target"]
+    lines = [f"Success % / average steps over {episodes} paired episodes per cell; the paper's below ours. "
+             "No target: % of the no-target scenes in the agent's cells that it ended correctly.", "",
              "| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for agent, interactive in (("gnbv", False), ("a3de", False), ("ges", True), ("i3de", True)):
         ours, paper = [], []
@@ -1877,6 +1883,11 @@ def table_markdown(cells: dict, episodes: int) -> str:
             published = PAPER_TABLE_II.get((agent, task), {}).get(scene)
             ours.append("-" if cell is None else f"{cell['success']:.1f} / {cell['steps']:.2f}")
             paper.append("-" if published is None else f"{published[0]:.1f} / {published[1]:.2f}")
+        absent = [c for (a, _, _), c in cells.items() if a == agent and c["no_target_episodes"]]
+        correct = sum(c["no_target_success"] * c["no_target_episodes"] for c in absent)
+        count = sum(c["no_target_episodes"] for c in absent)
+        ours.append(f"{correct / count:.1f} of {count}" if count else "-")
+        paper.append(f"{PAPER_NO_TARGET[agent]:.1f}" if agent in PAPER_NO_TARGET else "-")
         lines.append(f"| {agent.upper()} (ours) | " + " | ".join(ours) + " |")
         lines.append(f"| {agent.upper()} (paper) | " + " | ".join(paper) + " |")
     return "\n".join(lines)
@@ -2141,7 +2152,13 @@ def output_dir(text: str) -> Path:
     return path
 
 
+def default_task(agent: str | None) -> str:
+    """The task an agent was built for when --task is not given: ip for GES and I3DE, ap otherwise."""
+    return "ip" if agent in ("ges", "i3de") else "ap"
+
+
 def cmd_demo(args) -> int:
+    args.task = args.task or default_task(args.agent)
     weights = Path(args.weights) if args.weights else None
     png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, output_dir(args.out), weights)
     outcome = "success" if info["success"] else "failure"
@@ -2201,6 +2218,7 @@ def cmd_eval(args) -> int:
         return 0
     if args.agent is None:
         raise UsageError("eval needs --agent or --table")
+    args.task = args.task or default_task(args.agent)
     csv_path = output_file(args.out) if args.out else None
     weights = Path(args.weights) if args.weights else None
     rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, weights=weights)
@@ -2233,6 +2251,7 @@ def cmd_bench(args) -> int:
     return 0
 
 
+TASK_HELP = "default: ip for ges and i3de, ap otherwise"
 WEIGHTS_HELP = "a learned agent's checkpoint (default: weights/AGENT.pt, AGENT-large.pt on ap-large)"
 
 
@@ -2241,7 +2260,7 @@ def build_parser() -> ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     demo = commands.add_parser("demo", help="one episode to a PNG contact sheet and an MP4")
     demo.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default="a3de")
-    demo.add_argument("--task", choices=list(TASKS), default="ap")
+    demo.add_argument("--task", choices=list(TASKS), help=TASK_HELP)
     demo.add_argument("--scene", choices=SCENES, default="cubes")
     demo.add_argument("--seed", type=count_arg, default=0)
     demo.add_argument("--out", default="out", help="output folder (its parent must exist)")
@@ -2261,7 +2280,7 @@ def build_parser() -> ArgumentParser:
     evaluation = commands.add_parser("eval", help="paired evaluation episodes, or the whole Table II")
     evaluation.add_argument("--agent", choices=list(BASELINES) + list(LEARNED))
     evaluation.add_argument("--table", action="store_true", help="every cell of Table II beside the paper")
-    evaluation.add_argument("--task", choices=list(TASKS), default="ap")
+    evaluation.add_argument("--task", choices=list(TASKS), help=TASK_HELP)
     evaluation.add_argument("--scene", choices=SCENES, default="cubes")
     evaluation.add_argument("--episodes", type=positive_arg, default=100)
     evaluation.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1)

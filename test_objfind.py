@@ -616,6 +616,13 @@ def test_eval_writes_one_csv_row_per_episode(tmp_path):
     assert [line.split(",")[0] for line in lines[1:]] == ["5", "6", "7"]
 
 
+def test_the_interactive_agents_run_on_piles_unless_told_otherwise(capsys):
+    assert of.main(["eval", "--agent", "ges", "--episodes", "1", "--workers", "1", "--seed", "2"]) == 0
+    assert "ges on ip/cubes" in capsys.readouterr().out
+    assert of.main(["eval", "--agent", "ges", "--task", "ap", "--episodes", "1", "--workers", "1"]) == 0
+    assert "ges on ap/cubes" in capsys.readouterr().out
+
+
 def test_eval_bad_agent_or_checkpoint_is_one_line_and_exit_two(tmp_path):
     foreign = tmp_path / "foreign.pt"
     foreign.write_text("not a checkpoint")
@@ -637,6 +644,20 @@ def test_eval_csv_round_trips_for_resumed_tables(tmp_path):
     of.write_csv(rows, path)
     assert of.read_csv(path, [3]) == rows
     assert of.read_csv(path, [4]) is None and of.read_csv(tmp_path / "none.csv", [3]) is None
+
+
+def test_table_two_pools_the_no_target_scenes_of_each_agent():
+    def rows(successes, absent_successes):
+        found = [dict(target_present=True, success=ok, steps=5, decision_ms=1.0) for ok in successes]
+        return found + [dict(target_present=False, success=ok, steps=9, decision_ms=1.0) for ok in absent_successes]
+    cells = {("i3de", "ip", "cubes"): of.summarise(rows([True, False], [True] * 4)),
+             ("i3de", "ip", "object-models"): of.summarise(rows([True] * 2, [True, False, False, False]))}
+    table = of.table_markdown(cells, 6).splitlines()
+    i3de = next(line for line in table if line.startswith("| I3DE (ours)"))
+    assert i3de.split(" | ")[1:] == ["83.3 / 7.67", "-", "-", "-", "-", "50.0 / 7.67", "62.5 of 8 |"]
+    paper = next(line for line in table if line.startswith("| I3DE (paper)"))
+    assert "88.0 / 26.86" in paper and paper.endswith("96.1 |")
+    assert next(line for line in table if line.startswith("| GES (ours)")).endswith("- |")
 
 
 def test_every_random_shape_and_object_model_has_finite_geometry():
