@@ -1599,6 +1599,11 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
     `init`, a checkpoint, warm-starts a new run from its policy, critic and observation statistics."""
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
+    if resume and not ckpt_path.exists():
+        raise UsageError(f"--resume: no checkpoint in {str(out_dir)!r}")
+    checkpoint = read_checkpoint(ckpt_path) if resume else None
+    if checkpoint is not None:
+        p = PPOSettings(**checkpoint["settings"])   # a run keeps the settings it started with
     env = make_env()   # the single worker's env, or only asked for the observation size
     obs_dim = env.observation_space.shape[0]
     torch.manual_seed(seed)
@@ -1606,16 +1611,16 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
     optimizer = torch.optim.Adam(model.parameters(), lr=p.learning_rate, eps=1e-5)
     update, env_steps, wall_s, log_rows = 0, 0, 0.0, []
     if init is not None and not resume:
-        model.load_state_dict(init["model"])    # a fresh optimizer: Adam's moments belong to the old task
-    if resume and ckpt_path.exists():
-        checkpoint = read_checkpoint(ckpt_path)
+        try:   # a fresh optimizer: Adam's moments belong to the old task
+            model.load_state_dict(init["model"])
+        except (KeyError, RuntimeError):
+            raise UsageError("--init: the checkpoint's network does not match these settings") from None
+    if checkpoint is not None:
         model.load_state_dict(checkpoint["model"])
         optimizer.load_state_dict(checkpoint["optimizer"])
         update, env_steps, wall_s, seed = (checkpoint[k] for k in ("update", "env_steps", "wall_s", "seed"))
         log_rows = [r for r in read_train_log(log_path) if int(r["update"]) <= update]   # drop the lost tail
         meta = {**({"init": checkpoint["init"]} if "init" in checkpoint else {}), **(meta or {})}
-    elif resume:
-        raise UsageError(f"--resume: no checkpoint in {str(out_dir)!r}")
     steps_per_worker = max(1, p.batch_steps // workers)
     if workers > 1:
         import multiprocessing
@@ -1786,10 +1791,12 @@ def run_episode(env: ObjectFindingEnv, agent, seed: int) -> dict:
 
 
 def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list, weights: Path | None = None) -> list:
-    """Episodes of one worker process (one env, one fresh agent per episode)."""
+    """Episodes of one worker process: one env, a fresh baseline per episode (its rng seeded by the
+    episode), and a learned agent loaded once (its policy is deterministic and keeps no state)."""
     env = ObjectFindingEnv(task, scene)
+    learned = make_agent(agent_name, seeds[0], weights, task) if agent_name in LEARNED else None
     try:
-        return [run_episode(env, make_agent(agent_name, seed, weights, task), seed) for seed in seeds]
+        return [run_episode(env, learned or make_agent(agent_name, seed, weights, task), seed) for seed in seeds]
     finally:
         env.close()
 
@@ -2142,6 +2149,18 @@ def positive_arg(text: str) -> int:
     return value
 
 
+def ppo_setting_arg(text: str) -> tuple[str, float]:
+    """NAME=VALUE for one PPOSettings field, e.g. entropy_coef=0.003, of the field's own type."""
+    name, _, value = text.partition("=")
+    defaults = vars(PPOSettings())
+    if name not in defaults:
+        raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE with NAME one of {', '.join(defaults)}")
+    try:
+        return name, type(defaults[name])(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{value!r} is not a {type(defaults[name]).__name__}") from None
+
+
 def output_dir(text: str) -> Path:
     """An output folder: created if missing, but its parent must exist."""
     path = Path(text)
@@ -2239,8 +2258,11 @@ def cmd_train(args) -> int:
     meta = dict(task=args.task, scene=args.scene)
     if init is not None:
         meta["init"] = f"{init.get('task', '?')}/{init.get('scene', '?')} update {init.get('update', '?')}"
+    if args.resume and args.set:
+        raise UsageError("--set applies to a new run; a resumed run keeps the settings it started with")
     result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
-                   workers=args.workers, seed=args.seed, resume=args.resume, meta=meta, init=init)
+                   PPOSettings(**dict(args.set or [])), workers=args.workers, seed=args.seed, resume=args.resume,
+                   meta=meta, init=init)
     print(f"trained {result['env_steps']} env steps in {result['update']} updates; "
           f"wrote {out / 'checkpoint.pt'}, {out / 'log.csv'} and {out / 'curve.png'}")
     return 0
@@ -2275,6 +2297,8 @@ def build_parser() -> ArgumentParser:
     training.add_argument("--seed", type=count_arg, default=0)
     training.add_argument("--out", help="run folder: checkpoint.pt, log.csv, curve.png (default runs/TASK-SCENE)")
     training.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    training.add_argument("--set", type=ppo_setting_arg, action="append", metavar="NAME=VALUE",
+                          help="change a PPOSettings field for a new run (repeatable), e.g. entropy_coef=0.003")
     training.add_argument("--init", help="warm-start a new run from this checkpoint's policy (I3DE from A3DE)")
     training.set_defaults(func=cmd_train)
     evaluation = commands.add_parser("eval", help="paired evaluation episodes, or the whole Table II")
