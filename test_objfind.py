@@ -476,7 +476,8 @@ def run_cli(*args):
 
 @pytest.mark.parametrize("args", [["demo", "--task", "nope"], ["demo", "--scene", "boxes"],
                                   ["demo", "--seed", "-1"], ["demo", "--out", "/no/such/parent/demo"],
-                                  ["bench", "--steps", "-5"], ["bench", "--workers", "two"], ["fly"], []])
+                                  ["bench", "--steps", "-5"], ["bench", "--workers", "two"], ["fly"], [],
+                                  ["train", "--set", "entropy=0.1"], ["train", "--set", "epochs=ten"]])
 def test_cli_bad_input_is_one_line_and_exit_two(args):
     result = run_cli(*args)
     assert result.returncode == 2
@@ -813,7 +814,8 @@ def test_a_warm_start_begins_from_the_trained_policy(tmp_path):
 def test_a_resumed_run_repeats_the_next_update_exactly(tmp_path):
     straight = of.train(Reach, tmp_path / "a", total_steps=256 * 3, p=TINY_PPO, progress=False)
     of.train(Reach, tmp_path / "b", total_steps=256 * 2, p=TINY_PPO, progress=False)
-    resumed = of.train(Reach, tmp_path / "b", total_steps=256 * 3, p=TINY_PPO, progress=False, resume=True)
+    # a resumed run takes its settings from its checkpoint, whatever it is given
+    resumed = of.train(Reach, tmp_path / "b", total_steps=256 * 3, p=of.PPOSettings(), progress=False, resume=True)
     for (name, a), b in zip(straight["model"].state_dict().items(), resumed["model"].state_dict().values()):
         assert torch.equal(a, b), name
     same = lambda row: {k: v for k, v in row.items() if k != "wall_s"}
@@ -857,6 +859,7 @@ def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
              ["train", "--out", str(tmp_path / "run")],                          # would overwrite a run
              ["train", "--out", str(tmp_path / "no" / "such" / "dir")],
              ["train", "--init", str(truncated), "--out", str(tmp_path / "fresh")],    # a broken warm start
+             ["train", "--resume", "--set", "epochs=3", "--out", str(tmp_path / "run")],
              ["demo", "--agent", "a3de", "--weights", str(truncated)],
              ["eval", "--agent", "a3de", "--weights", str(truncated)])
     for args in cases:
