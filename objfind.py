@@ -1425,7 +1425,13 @@ class ActorCritic(nn.Module):
         with torch.no_grad():   # small initial means; a rarely terminating start
             self.actor[-1].weight.mul_(0.01)
             self.actor[-1].bias.zero_()
-            self.actor[-1].bias[-1] = float(np.log(p.init_terminate_prob / (1 - p.init_terminate_prob)))
+            self.actor[-1].bias[-1] = torch.logit(torch.tensor(p.init_terminate_prob))
+
+    @torch.no_grad()
+    def reset_terminate(self, prob: float) -> None:
+        """Make the terminate head say `prob` in every state, forgetting when to stop; moves are kept."""
+        self.actor[-1].weight[-1].zero_()
+        self.actor[-1].bias[-1] = torch.logit(torch.tensor(prob))
 
     def normalise(self, obs: torch.Tensor) -> torch.Tensor:
         return ((obs - self.obs_mean) / (self.obs_var + 1e-8).sqrt()).clamp(-self.obs_clip, self.obs_clip)
@@ -1593,10 +1599,11 @@ TRAIN_LOG_FIELDS = ("update", "env_steps", "episodes", "return", "success", "epi
 
 def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSettings(), workers: int = 1,
           seed: int = 0, resume: bool = False, progress: bool = True, meta: dict | None = None,
-          init: dict | None = None) -> dict:
+          init: dict | None = None, fresh_terminate: bool = False) -> dict:
     """PPO on `workers` processes, each with its own make_env(); writes out_dir/checkpoint.pt every
     few updates and out_dir/log.csv every update. With resume, continues from the checkpoint exactly.
-    `init`, a checkpoint, warm-starts a new run from its policy, critic and observation statistics."""
+    `init`, a checkpoint, warm-starts a new run from its policy, critic and observation statistics;
+    with fresh_terminate, the terminate head starts afresh (see README: I3DE)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
     if resume and not ckpt_path.exists():
@@ -1615,6 +1622,8 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
             model.load_state_dict(init["model"])
         except (KeyError, RuntimeError):
             raise UsageError("--init: the checkpoint's network does not match these settings") from None
+        if fresh_terminate:
+            model.reset_terminate(p.init_terminate_prob)
     if checkpoint is not None:
         model.load_state_dict(checkpoint["model"])
         optimizer.load_state_dict(checkpoint["optimizer"])
@@ -2257,12 +2266,15 @@ def cmd_train(args) -> int:
     init = read_checkpoint(Path(args.init)) if args.init and not args.resume else None
     meta = dict(task=args.task, scene=args.scene)
     if init is not None:
-        meta["init"] = f"{init.get('task', '?')}/{init.get('scene', '?')} update {init.get('update', '?')}"
+        meta["init"] = (f"{Path(args.init).name} ({init.get('task', '?')}/{init.get('scene', '?')}, update "
+                        f"{init.get('update', '?')}){', terminate reset' if args.fresh_terminate else ''}")
+    if args.fresh_terminate and init is None:
+        raise UsageError("--fresh-terminate needs --init (and a new run)")
     if args.resume and args.set:
         raise UsageError("--set applies to a new run; a resumed run keeps the settings it started with")
     result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
                    PPOSettings(**dict(args.set or [])), workers=args.workers, seed=args.seed, resume=args.resume,
-                   meta=meta, init=init)
+                   meta=meta, init=init, fresh_terminate=args.fresh_terminate)
     print(f"trained {result['env_steps']} env steps in {result['update']} updates; "
           f"wrote {out / 'checkpoint.pt'}, {out / 'log.csv'} and {out / 'curve.png'}")
     return 0
@@ -2300,6 +2312,8 @@ def build_parser() -> ArgumentParser:
     training.add_argument("--set", type=ppo_setting_arg, action="append", metavar="NAME=VALUE",
                           help="change a PPOSettings field for a new run (repeatable), e.g. entropy_coef=0.003")
     training.add_argument("--init", help="warm-start a new run from this checkpoint's policy (I3DE from A3DE)")
+    training.add_argument("--fresh-terminate", action="store_true",
+                          help="with --init: keep the moves and the critic, learn when to terminate afresh")
     training.set_defaults(func=cmd_train)
     evaluation = commands.add_parser("eval", help="paired evaluation episodes, or the whole Table II")
     evaluation.add_argument("--agent", choices=list(BASELINES) + list(LEARNED))

@@ -811,6 +811,21 @@ def test_a_warm_start_begins_from_the_trained_policy(tmp_path):
     assert checkpoint["model"]["obs_count"] > init["model"]["obs_count"]     # the statistics carried over
 
 
+def test_a_fresh_terminate_keeps_the_moves_and_forgets_when_to_stop():
+    trained = of.ActorCritic(3, TINY_PPO)
+    with torch.no_grad():
+        for parameter in trained.actor.parameters():
+            parameter.add_(torch.randn(parameter.shape, generator=torch.Generator().manual_seed(0)))
+    model = of.ActorCritic(3, TINY_PPO)
+    model.load_state_dict(trained.state_dict())
+    model.reset_terminate(0.05)
+    obs = torch.randn(64, 3, generator=torch.Generator().manual_seed(1))
+    before, after = trained.actor_output(obs), model.actor_output(obs)
+    assert torch.equal(before[:, :5], after[:, :5])                       # the moves are kept
+    assert before[:, 5].std() > 0.1                                         # the trained head varied
+    assert torch.allclose(torch.sigmoid(after[:, 5]), torch.tensor(0.05))  # now the same everywhere
+
+
 def test_a_resumed_run_repeats_the_next_update_exactly(tmp_path):
     straight = of.train(Reach, tmp_path / "a", total_steps=256 * 3, p=TINY_PPO, progress=False)
     of.train(Reach, tmp_path / "b", total_steps=256 * 2, p=TINY_PPO, progress=False)
@@ -860,6 +875,7 @@ def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
              ["train", "--out", str(tmp_path / "no" / "such" / "dir")],
              ["train", "--init", str(truncated), "--out", str(tmp_path / "fresh")],    # a broken warm start
              ["train", "--resume", "--set", "epochs=3", "--out", str(tmp_path / "run")],
+             ["train", "--fresh-terminate", "--out", str(tmp_path / "fresh")],         # without --init
              ["demo", "--agent", "a3de", "--weights", str(truncated)],
              ["eval", "--agent", "a3de", "--weights", str(truncated)])
     for args in cases:
