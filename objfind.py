@@ -2263,15 +2263,15 @@ def cmd_train(args) -> int:
     out = output_dir(args.out or str(Path("runs") / f"{args.task}-{args.scene}"))
     if not args.resume and (out / "checkpoint.pt").exists():
         raise UsageError(f"{str(out)!r} already holds a run: add --resume to continue it, or pick another --out")
-    init = read_checkpoint(Path(args.init)) if args.init and not args.resume else None
+    if args.resume and (args.set or args.init or args.fresh_terminate):
+        raise UsageError("--set, --init and --fresh-terminate start a new run; a resumed run keeps its own")
+    if args.fresh_terminate and not args.init:
+        raise UsageError("--fresh-terminate needs --init")
+    init = read_checkpoint(Path(args.init)) if args.init else None
     meta = dict(task=args.task, scene=args.scene)
     if init is not None:
         meta["init"] = (f"{Path(args.init).name} ({init.get('task', '?')}/{init.get('scene', '?')}, update "
                         f"{init.get('update', '?')}){', terminate reset' if args.fresh_terminate else ''}")
-    if args.fresh_terminate and init is None:
-        raise UsageError("--fresh-terminate needs --init (and a new run)")
-    if args.resume and args.set:
-        raise UsageError("--set applies to a new run; a resumed run keeps the settings it started with")
     result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
                    PPOSettings(**dict(args.set or [])), workers=args.workers, seed=args.seed, resume=args.resume,
                    meta=meta, init=init, fresh_terminate=args.fresh_terminate)

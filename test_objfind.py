@@ -876,6 +876,7 @@ def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
              ["train", "--init", str(truncated), "--out", str(tmp_path / "fresh")],    # a broken warm start
              ["train", "--resume", "--set", "epochs=3", "--out", str(tmp_path / "run")],
              ["train", "--fresh-terminate", "--out", str(tmp_path / "fresh")],         # without --init
+             ["train", "--resume", "--init", str(truncated), "--out", str(tmp_path / "run")],
              ["demo", "--agent", "a3de", "--weights", str(truncated)],
              ["eval", "--agent", "a3de", "--weights", str(truncated)])
     for args in cases:
