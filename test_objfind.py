@@ -346,6 +346,23 @@ def test_target_seen_counts_only_points_that_face_the_camera(ap_env):
     assert ap_env.target_seen.mean() > top_only + 0.03
 
 
+def test_target_seen_follows_the_target_when_it_moves(ap_env):
+    # The seen points live on the target: turn it upside down and the same view shows a new face.
+    seed, *_ = seed_with(ap_env, target_present=True)
+    body = ap_env.objects[0].body
+    pos, orn = ap_env.sim.getBasePositionAndOrientation(body)
+    ap_env._teleport(np.array(pos) + [0, 0, 0.2], of.gripper_rotation(0.0, 0.0))
+    ap_env.target_seen[:] = False
+    ap_env._observe()
+    top_only = ap_env.target_seen.mean()
+    ap_env._observe()
+    assert ap_env.target_seen.mean() == top_only                # the same face again adds nothing
+    flipped = ap_env.sim.multiplyTransforms([0, 0, 0], [1, 0, 0, 0], [0, 0, 0], orn)[1]   # 180 deg about x
+    ap_env.sim.resetBasePositionAndOrientation(body, pos, flipped)
+    ap_env._observe()
+    assert ap_env.target_seen.mean() > 1.8 * top_only           # the old bottom face is new
+
+
 @pytest.mark.parametrize("scene", of.SCENES)
 def test_every_scene_kind_builds_and_only_the_target_is_red(scene):
     env = of.ObjectFindingEnv("ap", scene)
@@ -884,12 +901,12 @@ def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
         assert len(capsys.readouterr().err.strip().splitlines()) == 1, args
 
 
-@pytest.mark.parametrize("name", ["a3de.pt", "a3de-large.pt"])
-def test_the_shipped_weights_load_and_act(name):
+@pytest.mark.parametrize("name, task", [("a3de.pt", "ap"), ("a3de-large.pt", "ap-large"), ("i3de.pt", "ip")])
+def test_the_shipped_weights_load_and_act(name, task):
     checkpoint = of.read_checkpoint(Path(of.__file__).parent / "weights" / name)
-    assert checkpoint["obs_dim"] == 71 and checkpoint["env_steps"] > 0
+    assert checkpoint["obs_dim"] == 71 and checkpoint["env_steps"] > 0 and checkpoint["task"] == task
     agent = of.load_agent(Path(of.__file__).parent / "weights" / name)
-    env = of.ObjectFindingEnv("ap", "cubes", seed=3)
+    env = of.ObjectFindingEnv(task, "cubes", seed=3)
     obs, _ = env.reset()
     action = agent.act(obs, env)
     assert action.shape == (6,) and np.all(np.abs(action) <= 1) and abs(action[5]) == 1.0
@@ -900,6 +917,18 @@ def test_the_shipped_weights_load_and_act(name):
 def test_demo_runs_the_shipped_a3de_by_default(tmp_path):
     assert of.main(["demo", "--seed", "1", "--out", str(tmp_path / "demo")]) == 0
     assert (tmp_path / "demo" / "demo-ap-cubes-a3de.png").exists()
+
+
+I3DE_SEED = 52   # a pile the shipped I3DE pushes apart to reveal the target (the README's picture)
+
+
+def test_an_i3de_episode_on_a_fixed_seed_ends_by_its_own_choice_within_the_horizon(tmp_path, capsys):
+    # the shipped I3DE is the default for `demo --agent i3de`, on the pile task
+    assert of.main(["demo", "--agent", "i3de", "--seed", str(I3DE_SEED), "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "demo-ip-cubes-i3de.png").exists()
+    line = capsys.readouterr().out.splitlines()[0]
+    steps = int(line.split(" after ")[1].split()[0])
+    assert ": success after " in line and steps < of.TASKS["ip"].horizon
 
 
 def test_a_policy_checkpoint_runs_as_an_eval_agent(tmp_path):
