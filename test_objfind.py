@@ -922,13 +922,10 @@ def test_demo_runs_the_shipped_a3de_by_default(tmp_path):
 I3DE_SEED = 52   # a pile the shipped I3DE pushes apart to reveal the target (the README's picture)
 
 
-def test_an_i3de_episode_on_a_fixed_seed_ends_by_its_own_choice_within_the_horizon(tmp_path, capsys):
-    # the shipped I3DE is the default for `demo --agent i3de`, on the pile task
-    assert of.main(["demo", "--agent", "i3de", "--seed", str(I3DE_SEED), "--out", str(tmp_path)]) == 0
-    assert (tmp_path / "demo-ip-cubes-i3de.png").exists()
-    line = capsys.readouterr().out.splitlines()[0]
-    steps = int(line.split(" after ")[1].split()[0])
-    assert ": success after " in line and steps < of.TASKS["ip"].horizon
+def test_an_i3de_episode_on_a_fixed_seed_ends_by_its_own_choice_within_the_horizon(tmp_path):
+    png, _, info = of.run_demo("i3de", "ip", "cubes", I3DE_SEED, tmp_path)   # the shipped weights
+    assert png.exists()
+    assert info["terminated_by_agent"] and info["success"] and info["steps"] < of.TASKS["ip"].horizon
 
 
 def test_a_policy_checkpoint_runs_as_an_eval_agent(tmp_path):
