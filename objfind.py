@@ -6,13 +6,25 @@ target among (active task) or inside piles of (interactive task) objects. Each v
 TSDF volume with a detection channel, the volume is summarised into the 71 numbers of the paper's
 Fig. 2, and an agent picks the next gripper displacement.
 
-Read top to bottom: settings, perception, volume, encoder, simulation, agents, learned agents (PPO),
-evaluation, command line.
+Read top to bottom, in the order data flows:
 
-    python objfind.py demo --agent scripted     # one episode -> PNG contact sheet + MP4
+    settings         Settings (Table I presets in TASKS), SCENES, PPOSettings
+    perception       detect_target, add_detector_noise
+    volume           TSDFVolume: TSDF + detection channel, carving, max weight 2
+    encoder          encode_state: the volume around the gripper -> 71 values
+    simulation I     frames, gripper poses, the wrist camera, render_rgbd
+    simulation II    scenes: object meshes, make_object, piles, the target's ground-truth surface
+    simulation III   ObjectFindingEnv (a gymnasium.Env, registered as objfind/...-v0), AgentView
+    agents           RandomAgent, ScriptedAgent, GreedyNextBestView, two_opt, GridExhaustiveSearch
+    learning         ActorCritic, gae, ppo_update, collect_rollout, checkpoints, train
+    evaluation       make_agent, run_episode, evaluate, wilson_interval, the Table II layout
+    demo, bench      run_demo (PNG + MP4), run_bench (per-stage milliseconds, steps/s)
+    command line     python objfind.py demo | eval | train | bench
+
+    python objfind.py demo                      # A3DE, one episode -> PNG contact sheet + MP4
     python objfind.py eval --agent gnbv         # paired episodes: success, steps, decision time
     python objfind.py eval --table              # Table II beside the paper's figures
-    python objfind.py train --task ap           # PPO for A3DE, resumable -> runs/ap-cubes/
+    python objfind.py train --task ip           # PPO for I3DE, resumable -> runs/ip-cubes/
     python objfind.py bench                     # per-stage milliseconds and env steps/s
 """
 from __future__ import annotations
@@ -54,11 +66,16 @@ def _import_quietly(name: str):
 
 
 pb = _import_quietly("pybullet")
+from pybullet_utils.bullet_client import BulletClient   # noqa: E402  one physics client per env
+
+
+class UsageError(Exception):
+    """Bad input (an unknown agent, a missing or foreign checkpoint): one line, exit status 2."""
 
 # ================================================================================================
 # Settings: Table I presets and the constants of Sec. IV-A. Lengths in metres, angles in radians.
+# Every number of the world and of learning lives here, or in a named constant beside the code using it.
 # ================================================================================================
-
 
 @dataclass(frozen=True)
 class Settings:
@@ -67,7 +84,7 @@ class Settings:
     # Table I, simulation columns
     min_objects: int = 5                # "Min num. objects"
     max_objects: int = 25               # "Max num. objects"
-    piles: int = 0                      # "Num. of piles"
+    num_piles: int = 0                  # "Num. of piles"
     no_target_prob: float = 0.10        # "No target prob."
     exploration_ratio: float = 0.0      # "Exploration ratio": share of pile-task scenes without piles
     workspace_m: float = 0.6            # "Workspace length [m]"
@@ -87,31 +104,72 @@ class Settings:
     # Sec. IV-B: baselines
     gnbv_samples: int = 10              # n, poses GNBV samples near the current one (simulation)
     gnbv_explored_to_stop: float = 0.97 # GNBV terminates above this explored share ("no target")
+    seen_threshold: float = 0.2         # target observed once this share of its surface was seen
     # Table II caption: primitive and shape piles hold more objects
     objects_per_pile_dense: tuple = (15, 30)
+
     # --- where the paper is silent (README, "Choices") ---
+    # objects
     object_size_m: float = 0.04         # side of a cube; other objects are scaled to about this size
-    image_width: int = 80               # wrist camera, TinyRenderer
+    variable_scale: tuple = (0.5, 2.0)  # variable primitives: size factor drawn uniformly from this range
+    object_mass_kg: float = 0.1         # a wooden 4 cm cube weighs about 40 g; 0.1 keeps piles stable
+    object_friction: float = 0.6        # lateral friction: objects slide when pushed, piles still stand
+    # wrist camera (TinyRenderer)
+    image_width: int = 80
     image_height: int = 60
     fov_y_deg: float = 45.0             # 58 x 45 degrees, close to the real depth camera's 62 x 45
     near_m: float = 0.01
     camera_offset_m: float = 0.08       # camera sits this far behind the fingertips, on the approach axis
+    # gripper
+    gripper_mass_kg: float = 0.5
+    gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper
     max_roll_rad: float = 1.0           # tilt limit
     ceiling_ratio: float = 0.75         # the end-effector rises to this x workspace_m, above the volume
-    exploration_normaliser: float = 0.03  # newly explored share of the volume that earns the full r_t
-    seen_threshold: float = 0.2         # target observed once this share of its surface points was seen
-    surface_points: int = 1000          # ground-truth points on the target surface (+-0.013 at 0.2)
-    seen_depth_tol_m: float = 0.01      # a point is unoccluded if within this of the rendered depth
-    seen_min_cos: float = 0.15          # a surface seen more obliquely than ~80 degrees is not resolved
-    detection_threshold: float = 0.5    # a detection voxel above this counts as perceived target
-    outline_pixel_share: float = 0.5    # a detected pixel on the outline counts as half target area
-    wall_height_m: float = 0.1
-    gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper
+    fingertip_clearance_m: float = 0.005  # lowest fingertip height above the floor
+    gripper_start_margin_m: float = 0.05  # initial pose: this far inside the walls ...
+    gripper_start_min_z_m: float = 0.1    # ... at least this high ...
+    gripper_start_tries: int = 20         # ... resampled while it overlaps an object, then at the ceiling
+    reach_tol_m: float = 0.003          # an action's pose counts as reached within this distance ...
+    reach_tol_rad: float = 0.02         # ... and this angle
+    stall_m: float = 0.0005             # the gripper stalls (a wall, a heavy pile) if it moves less per check
+    # physics
     physics_hz: int = 240
     solver_iterations: int = 10         # enough for stable piles, 3x cheaper than pybullet's 50
     max_substeps: int = 120             # to reach one action's pose, 0.5 s of simulated time at most
     settle_substeps: int = 48           # then at most this many for pushed objects to come to rest
     settle_speed: float = 0.02          # objects slower than this (m/s) count as at rest
+    settle_scatter_substeps: int = 240  # a new scene: 1 s for scattered objects to come to rest ...
+    settle_pile_substeps: int = 480     # ... 2 s for piles
+    wall_height_m: float = 0.1
+    wall_thickness_m: float = 0.02
+    # scenes: scattered objects
+    scatter_tries: int = 50             # rejection samples for a free spot before dropping from above
+    scatter_gap_m: float = 0.005        # clearance between scattered objects' footprints
+    drop_gap_m: float = 0.002           # objects start this far above their resting height
+    no_room_drop_m: float = 0.1         # an object without a free spot falls from this height
+    # scenes: piles (pile_positions)
+    pile_margin_m: float = 0.12         # pile centres at least this far from the walls ...
+    pile_min_apart_m: float = 0.2       # ... and from each other (but for pile_overlap_chance per draw)
+    pile_overlap_chance: float = 0.02   # so a crowded workspace still finds centres
+    pile_layers: int = 7                # a pile is a square pyramid of spots, 7 x 7 at the bottom
+    pile_spacing_ratio: float = 0.8     # spot spacing / the widest object's diameter: neighbours touch
+    pile_layer_cost: float = 0.45       # a layer up costs this many rings out: piles grow tall, not wide
+    pile_spot_noise: float = 0.01       # random tie-break between spots of equal cost
+    pile_jitter_ratio: float = 0.1      # std of a spot's xy jitter / the spacing
+    pile_layer_gap_m: float = 0.005     # vertical clearance between layers when dropped
+    # rewards and ground truth
+    exploration_normaliser: float = 0.03  # newly explored share of the volume that earns the full r_t
+    surface_points: int = 1000          # ground-truth points on the target surface (+-0.013 at 0.2)
+    seen_depth_tol_m: float = 0.01      # a point is unoccluded if within this of the rendered depth
+    seen_min_cos: float = 0.15          # a surface seen more obliquely than ~80 degrees is not resolved
+    # perceived target (the volume's estimate, for the searchers)
+    detection_threshold: float = 0.5    # a detection voxel or pixel above this counts as target
+    outline_pixel_share: float = 0.5    # a detected pixel on the outline counts as half target area
+    # baselines
+    gnbv_rays: tuple = (16, 12)         # GNBV casts this grid of rays per candidate view
+    gnbv_min_detections: int = 3        # GNBV centres the target once this many detection voxels agree
+    ges_clearance_m: float = 0.01       # GES sweeps with its fingertips this far above a nominal cube
+    ges_tries_per_node: int = 3         # GES gives up a node it cannot reach (a pile) after this many
 
     @property
     def voxel_m(self) -> float:
@@ -132,16 +190,22 @@ class Settings:
         return 2.0 * self.workspace_m
 
     @property
-    def nominal_target_voxels(self) -> float:
-        """The nominal cube's surface in voxel faces: the encoder's scale for the detection sum."""
+    def nominal_target_area_m2(self) -> float:
+        """Surface of the nominal target, a cube of side object_size_m."""
+        return 6 * self.object_size_m ** 2
+
+    @property
+    def nominal_target_voxel_faces(self) -> float:
+        """The nominal cube's surface in units of a voxel face: the encoder's scale for the detection sum."""
         return 6 * (self.object_size_m / self.voxel_m) ** 2
 
 
 TASKS = {
     "ap": Settings(),
     "ap-large": Settings(min_objects=10, max_objects=40, workspace_m=1.2, horizon=500),
-    "ip": Settings(min_objects=15, max_objects=75, piles=3, exploration_ratio=0.25),
+    "ip": Settings(min_objects=15, max_objects=75, num_piles=3, exploration_ratio=0.25),
 }
+
 SCENES = ("cubes", "fixed-primitives", "variable-primitives", "random-shapes", "object-models")
 
 
@@ -164,19 +228,26 @@ class PPOSettings:
     reward_scale: float = 1 / 150      # rewards divided by r_d: returns of order one for the critic
     init_log_std: float = -0.5         # initial std 0.6 of the five displacements (the Box is [-1, 1])
     init_terminate_prob: float = 0.02  # a fresh policy that terminated half the time would never look
+    adam_eps: float = 1e-5             # Adam's epsilon, as in OpenAI Baselines' PPO2
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
+
 
 # ================================================================================================
 # Perception (Sec. III-B.1, III-C): a CIELAB colour detector and the paper's detector noise.
 # ================================================================================================
 
 TARGET_RGBA = (0.85, 0.05, 0.05, 1.0)
+
+
 OTHER_RGBA = (  # clearly non-red: none of these passes the detector under any shading
     (0.10, 0.30, 0.90, 1), (0.15, 0.65, 0.20, 1), (0.90, 0.85, 0.20, 1), (0.55, 0.55, 0.55, 1),
     (0.20, 0.70, 0.80, 1), (0.92, 0.92, 0.92, 1), (0.35, 0.35, 0.40, 1), (0.45, 0.25, 0.75, 1),
 )
+
+FLOOR_RGBA, WALL_RGBA = (0.78, 0.76, 0.72, 1), (0.55, 0.6, 0.68, 1)   # pass as non-red too
 RED_MIN_CHROMA = 20.0            # CIELAB chroma sqrt(a*^2 + b*^2): saturated enough to be a colour
+
 RED_HUE_DEG = (-10.0, 50.0)      # CIELAB hue atan2(b*, a*): red, not orange, pink or purple
 
 
@@ -203,9 +274,12 @@ def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, s: Sett
     flat[picks] = np.maximum(flat[picks], rng.exponential(1.0 / s.noise_rate, n_false))
     return np.clip(noisy, 0.0, 1.0).astype(np.float32)
 
+
 # ================================================================================================
 # Volume (Sec. III-B.1): a numpy TSDF with a detection channel, carving and max weight 2.
 # ================================================================================================
+
+MIN_PROJECTION_Z_M = np.float32(1e-3)   # guards the division by z; the renderer's near plane cuts depth anyway
 
 
 def surface_derivative(P: np.ndarray, axis: int) -> np.ndarray:
@@ -228,20 +302,17 @@ class TSDFVolume:
     hold tsdf 0 and weight 0 (Open3D's convention), so sums over the volume say how much was observed.
     """
 
-    def __init__(self, size_m: float, height_m: float, voxels_per_side: int, trunc_m: float,
-                 max_weight: float, detection_threshold: float = 0.5, seen_min_cos: float = 0.15,
-                 outline_pixel_share: float = 0.5):
-        self.voxel_m = size_m / voxels_per_side
-        self.shape = (voxels_per_side, voxels_per_side, int(round(height_m / self.voxel_m)))
-        self.origin = np.array([-size_m / 2, -size_m / 2, 0.0])
-        self.trunc_m, self.max_weight = trunc_m, max_weight
-        self.near = np.float32(1e-3)   # voxels closer to the camera than this are not projected
+    def __init__(self, s: Settings):
+        self.voxel_m = s.voxel_m
+        self.shape = (s.voxels_per_side, s.voxels_per_side, int(round(s.volume_height_m / self.voxel_m)))
+        self.origin = np.array([-s.workspace_m / 2, -s.workspace_m / 2, 0.0])
+        self.trunc_m, self.max_weight = s.trunc_m, s.max_weight
         self.tsdf = np.zeros(self.shape, np.float32)        # (nx, ny, nz) signed distance / trunc
         self.weight = np.zeros(self.shape, np.float32)      # (nx, ny, nz) observations, at most max_weight
         self.detections = np.zeros(self.shape, np.float32)  # (nx, ny, nz) detection score near surfaces
         self.target_area = np.zeros(self.shape, np.float32)  # (nx, ny, nz) m^2 of target surface seen
-        self.detection_threshold, self.seen_min_cos = detection_threshold, seen_min_cos
-        self.outline_pixel_share = outline_pixel_share
+        self.detection_threshold, self.seen_min_cos = s.detection_threshold, s.seen_min_cos
+        self.outline_pixel_share = s.outline_pixel_share
         # Voxel centres are separable, so we keep three 1-D axes instead of an (N, 3) array: camera
         # coordinates of a sub-box then come from broadcasting, never from a matrix product per voxel.
         self.axes = [(np.arange(n, dtype=np.float32) + 0.5) * self.voxel_m + o
@@ -308,8 +379,11 @@ class TSDFVolume:
                   T_world_camera: np.ndarray) -> int:
         """Fuse one view: (H, W) depth in metres along z (0 = no return), (H, W) detection scores in [0, 1].
 
-        Returns the number of voxels observed for the first time. Only voxels inside the frustum's
-        slab boxes are projected; all updates are in place.
+        The weighted running average of Curless & Levoy (1996): every voxel in front of or up to
+        trunc_m behind the surface its pixel sees takes d = min(1, (depth - z) / trunc_m), then
+        tsdf <- (w tsdf + d) / (w + 1) and w <- min(w + 1, max_weight). Capping the weight at 2
+        (the paper) lets two new views overwrite what a push moved. The detection channel is averaged
+        with the same weights. Returns the number of voxels observed for the first time.
         """
         if not np.any(depth_m > 0):
             return 0
@@ -330,7 +404,7 @@ class TSDFVolume:
             z = along_box(P[2])                  # (a, b, c) depth of each voxel along the optical axis
             u = along_box(P[0]) / z
             v = along_box(P[1]) / z
-            valid = (z > self.near) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+            valid = (z > MIN_PROJECTION_Z_M) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
             pixel = v[valid].astype(np.int32) * W + u[valid].astype(np.int32)
             depth = depth_m.reshape(-1)[pixel]
             sdf = depth - z[valid]
@@ -353,7 +427,7 @@ class TSDFVolume:
         if same.any():
             keep = ~same
             flat, sdf, pixel, w_old = flat[keep], sdf[keep], pixel[keep], w_old[keep]
-        w_sum = w_old + 1.0
+        w_sum = w_old + 1.0   # the weighted average, each view weighing 1
         tsdf[flat] = (tsdf[flat] * w_old + np.minimum(1.0, sdf * (1.0 / self.trunc_m))) / w_sum
         # detections as a truncated unsigned distance: the pixel's score, fading to 0 at trunc_m
         det_obs = detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m)
@@ -409,14 +483,19 @@ class TSDFVolume:
         voxels, which = np.unique(flat_hit, return_inverse=True)
         area_seen[voxels] = np.maximum(area_seen[voxels], np.bincount(which, weights=area))
 
-    def perceived_target_fraction(self, s: Settings) -> float:
-        """Share of the nominal target's surface the agent has seen: the target area in the volume
-        over the cube's 6 faces. What the baselines and the scripted agent stop on."""
-        return float(self.target_area.sum()) / (6 * s.object_size_m ** 2)
+    def seen_target_area_m2(self) -> float:
+        """The target surface the volume holds as seen (m^2): what the searchers' stop rule divides."""
+        return float(self.target_area.sum())
+
 
 # ================================================================================================
 # Encoder (Sec. III-B.1, Fig. 2): the volume around the end-effector -> 71 values.
 # ================================================================================================
+
+BINS = 17                      # pooled cells per map (Fig. 2)
+MAPS = 4                       # TSDF above / below the fingertips, detections above / below
+STATE_TSDF_SUM, STATE_DETECTION_SUM, STATE_ROLL = MAPS * BINS, MAPS * BINS + 1, MAPS * BINS + 2
+STATE_SIZE = MAPS * BINS + 3   # 71: the maps, the two sums, the roll
 
 # The 17 bins, seen from above in the end-effector's yaw frame (x forward, y to the left):
 # a 3 x 3 grid of crop/3 cells indexed (a, b) with a along x (0 back .. 2 front) and b along y
@@ -426,7 +505,7 @@ OUTER_BIN = np.array([0, 1, 2, 3, -1, 4, 5, 6, 7])
 
 
 def column_bins(u: np.ndarray, v: np.ndarray, crop_m: float) -> np.ndarray:
-    """Bin (0..16, or 17 outside the crop) of columns at (u, v) metres in the end-effector's yaw frame."""
+    """Bin (0..16, or BINS = 17 outside the crop) of columns at (u, v) metres in the end-effector's yaw frame."""
     cell = crop_m / 3
     a = np.floor((u + crop_m / 2) / cell).astype(np.int64)
     b = np.floor((v + crop_m / 2) / cell).astype(np.int64)
@@ -435,17 +514,17 @@ def column_bins(u: np.ndarray, v: np.ndarray, crop_m: float) -> np.ndarray:
     c = np.clip(np.floor((u + cell / 2) / (cell / 3)), 0, 2).astype(np.int64)
     d = np.clip(np.floor((v + cell / 2) / (cell / 3)), 0, 2).astype(np.int64)
     bins = np.where(outer == 4, 8 + 3 * c + d, OUTER_BIN[outer])
-    return np.where(inside, bins, 17)
+    return np.where(inside, bins, BINS)
 
 
 def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, finger_z: float,
-                 crop_m: float = 1.2, detection_scale: float = 1.0) -> np.ndarray:
+                 crop_m: float, detection_scale: float) -> np.ndarray:
     """The state of Fig. 2: 4 maps x 17 bins, the TSDF and detection sums, and the roll. (71,) float32.
 
     The maps are TSDF above / below the fingertips, then detections above / below, each summed along z
     and pooled into the 17 bins around the end-effector. The TSDF pair is normalised by its joint sum,
     the detection pair by its own; the sums follow, scaled by the volume's voxel count and by
-    `detection_scale` (voxels of a fully seen target), then the roll.
+    `detection_scale` (a fully seen target's detection sum), then the roll.
     """
     nx, ny, nz = volume.shape
     k = int(np.clip(round(finger_z / volume.voxel_m), 0, nz))
@@ -458,18 +537,19 @@ def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, fing
     cx, cy = volume.column_xy[0] - ee_xyz[0], volume.column_xy[1] - ee_xyz[1]
     cos, sin = np.cos(ee_yaw), np.sin(ee_yaw)
     bins = column_bins(cos * cx + sin * cy, -sin * cx + cos * cy, crop_m)
-    index = (bins[None, :] + 18 * np.arange(4)[:, None]).reshape(-1)
-    pooled = np.bincount(index, weights=maps.reshape(-1), minlength=72).reshape(4, 18)[:, :17]
+    index = (bins[None, :] + (BINS + 1) * np.arange(MAPS)[:, None]).reshape(-1)   # bin 17: outside, dropped
+    pooled = np.bincount(index, weights=maps.reshape(-1), minlength=MAPS * (BINS + 1))
+    pooled = pooled.reshape(MAPS, BINS + 1)[:, :BINS]
     tsdf_sum, det_sum = pooled[:2].sum(), pooled[2:].sum()
     pooled[:2] /= tsdf_sum if abs(tsdf_sum) > 1e-6 else 1.0
     pooled[2:] /= det_sum if abs(det_sum) > 1e-6 else 1.0
     sums = [tsdf_sum / volume.tsdf.size, det_sum / detection_scale]
     return np.concatenate([pooled.reshape(-1), sums, [ee_roll]]).astype(np.float32)
 
-# ================================================================================================
-# Simulation (Sec. III-B.2-3, III-C): pybullet scenes, the floating gripper, the wrist camera, rewards.
-# ================================================================================================
 
+# ================================================================================================
+# Simulation I (Sec. III-B.2): frames, the floating gripper and its wrist camera.
+# ================================================================================================
 
 def rotation_z(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
@@ -486,12 +566,35 @@ def rotation_x(a: float) -> np.ndarray:
     return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
 
 
+def quat_of(R: np.ndarray) -> list:
+    """pybullet quaternion (x, y, z, w) of a rotation matrix."""
+    w = np.sqrt(max(1e-12, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
+    if w > 1e-3:
+        return [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w),
+                (R[1, 0] - R[0, 1]) / (4 * w), w]
+    i = int(np.argmax(np.diag(R)))
+    j, k = (i + 1) % 3, (i + 2) % 3
+    q = np.zeros(4)
+    q[i] = np.sqrt(max(1e-12, 1 + R[i, i] - R[j, j] - R[k, k])) / 2
+    q[j] = (R[j, i] + R[i, j]) / (4 * q[i])
+    q[k] = (R[k, i] + R[i, k]) / (4 * q[i])
+    q[3] = (R[k, j] - R[j, k]) / (4 * q[i])
+    return list(q)
+
+
 # The gripper in the tool frame (origin between the fingertips, z along the approach axis): a palm
 # and two fingers, as (half extents, centre) boxes.
 GRIPPER_BOXES = (((0.045, 0.015, 0.01), (0.0, 0.0, -0.09)),
                  ((0.006, 0.012, 0.04), (-0.032, 0.0, -0.04)), ((0.006, 0.012, 0.04), (0.032, 0.0, -0.04)))
-GRIPPER_CORNERS = np.array([[x, y, z] for x in (-0.045, 0.045) for y in (-0.015, 0.015) for z in (-0.1, 0.0)])
+
+_box_lo = np.min([np.subtract(c, h) for h, c in GRIPPER_BOXES], 0)
+_box_hi = np.max([np.add(c, h) for h, c in GRIPPER_BOXES], 0)
+GRIPPER_CORNERS = np.round([[x, y, z] for x in (_box_lo[0], _box_hi[0]) for y in (_box_lo[1], _box_hi[1])
+                            for z in (_box_lo[2], _box_hi[2])], 9)   # (8, 3) corners of the boxes' bounding box
+GRIPPER_RGBA = (0.25, 0.25, 0.28, 1)   # the outside view's ghost of the gripper
+
 FINGER_REACH_M = 0.038   # lateral reach of the fingers: how far a fingertip dips below the ee when rolled
+
 
 # Tool axes in the yaw frame at roll 0: x to the gripper's right, y backward, z down (the approach axis).
 R_YAW_TOOL = np.array([[0, -1, 0], [-1, 0, 0], [0, 0, -1.0]])
@@ -517,7 +620,7 @@ def action_goal(T_world_tool: np.ndarray, action: np.ndarray, s: Settings) -> np
     roll = float(np.clip(roll + action[3] * s.max_turn_rad, -s.max_roll_rad, s.max_roll_rad))
     yaw = float(yaw + action[4] * s.max_turn_rad)
     half = s.workspace_m / 2
-    floor_z = 0.005 + FINGER_REACH_M * abs(np.sin(roll))
+    floor_z = s.fingertip_clearance_m + FINGER_REACH_M * abs(np.sin(roll))
     goal = np.eye(4)
     goal[:3, :3] = gripper_rotation(yaw, roll)
     goal[:3, 3] = np.clip(T_world_tool[:3, 3] + rotation_z(yaw) @ (np.asarray(action[:3]) * s.max_step_m),
@@ -560,23 +663,10 @@ def render_rgbd(sim, T_world_camera: np.ndarray, K: np.ndarray, width: int, heig
     return np.ascontiguousarray(rgb), depth.astype(np.float32)
 
 
-def quat_of(R: np.ndarray) -> list:
-    """pybullet quaternion (x, y, z, w) of a rotation matrix."""
-    w = np.sqrt(max(1e-12, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
-    if w > 1e-3:
-        return [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w),
-                (R[1, 0] - R[0, 1]) / (4 * w), w]
-    i = int(np.argmax(np.diag(R)))
-    j, k = (i + 1) % 3, (i + 2) % 3
-    q = np.zeros(4)
-    q[i] = np.sqrt(max(1e-12, 1 + R[i, i] - R[j, j] - R[k, k])) / 2
-    q[j] = (R[j, i] + R[i, j]) / (4 * q[i])
-    q[k] = (R[k, i] + R[i, k]) / (4 * q[i])
-    q[3] = (R[k, j] - R[j, k]) / (4 * q[i])
-    return list(q)
-
-
-# --- object meshes: triangle lists used for rendering custom shapes and for ground-truth points ----
+# ================================================================================================
+# Simulation II (Sec. III-C, Table I): scenes. Object meshes, the five scene kinds, piles, and the
+# target's ground-truth surface (the points that decide "seen"; never shown to an agent).
+# ================================================================================================
 
 def box_mesh(half) -> tuple[np.ndarray, np.ndarray]:
     hx, hy, hz = half
@@ -632,12 +722,26 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.rand
     return points, normals * np.where(outward == 0, 1.0, outward)[:, None]
 
 
-def fibonacci_sphere(n: int) -> np.ndarray:
-    """(n, 3) unit vectors spread evenly over the sphere."""
-    k = np.arange(n) + 0.5
-    z = 1 - 2 * k / n
-    a = np.pi * (1 + 5 ** 0.5) * k
-    return np.stack([np.sqrt(1 - z ** 2) * np.cos(a), np.sqrt(1 - z ** 2) * np.sin(a), z], 1)
+@functools.lru_cache(maxsize=None)
+def urdf_mesh(urdf_path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Visual mesh of a one-link URDF in its link frame (scale and origin applied), parsed from the OBJ."""
+    text = Path(urdf_path).read_text()
+    visual = text[text.index("<visual"):]
+    mesh = re.search(r'<mesh\s+filename="([^"]+)"(?:\s+scale="([^"]+)")?', visual)
+    origin = visual[:visual.index("<geometry")]
+    xyz, rpy = re.search(r'xyz="([^"]+)"', origin), re.search(r'rpy="([^"]+)"', origin)
+    scale = np.array([float(x) for x in mesh.group(2).split()]) if mesh.group(2) else np.ones(3)
+    offset = np.array([float(x) for x in xyz.group(1).split()]) if xyz else np.zeros(3)
+    roll, pitch, yaw = (float(x) for x in rpy.group(1).split()) if rpy else (0.0, 0.0, 0.0)
+    R = rotation_z(yaw) @ rotation_y(pitch) @ rotation_x(roll)       # URDF: fixed-axis roll, pitch, yaw
+    vertices, faces = [], []
+    for line in (Path(urdf_path).parent / mesh.group(1)).read_text().splitlines():
+        if line.startswith("v "):
+            vertices.append([float(x) for x in line.split()[1:4]])
+        elif line.startswith("f "):
+            idx = [int(tok.split("/")[0]) - 1 for tok in line.split()[1:]]
+            faces += [[idx[0], idx[i], idx[i + 1]] for i in range(1, len(idx) - 1)]   # fan triangulation
+    return (np.array(vertices) * scale) @ R.T + offset, np.array(faces)
 
 
 def body_frame_mesh(sim, body: int, urdf_path: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -648,10 +752,18 @@ def body_frame_mesh(sim, body: int, urdf_path: str, scale: float) -> tuple[np.nd
     return (v * scale - np.array(inertial_pos)) @ R, f
 
 
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere."""
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    a = np.pi * (1 + 5 ** 0.5) * k
+    return np.stack([np.sqrt(1 - z ** 2) * np.cos(a), np.sqrt(1 - z ** 2) * np.sin(a), z], 1)
+
+
 EXTERIOR_CACHE: dict = {}
 
 
-def exterior_surface(urdf_path: str, scale: float, candidates: int = 8000, views: int = 40,
+def exterior_surface(urdf_path: str, scale: float, min_cos: float, candidates: int = 8000, views: int = 40,
                      pixels: int = 128):
     """Points on the part of a mesh model's surface that can be seen from outside, their normals
     (turned towards a camera that sees them), and that part's area. Cached per model.
@@ -660,11 +772,11 @@ def exterior_surface(urdf_path: str, scale: float, candidates: int = 8000, views
     all faces counts surface buried inside, which nobody can see. A hollow shape's inside (the mug's)
     is real surface, but its normal, turned away from the centroid, would face away from any camera.
     The model alone is rendered from `views` directions around it; a candidate point is kept when
-    some view sees it unoccluded and not edge-on.
+    some view sees it unoccluded and seen less obliquely than min_cos (the ground truth's own limit).
     """
-    key = (urdf_path, scale, candidates)
+    key = (urdf_path, scale, min_cos, candidates)
     if key not in EXTERIOR_CACHE:
-        sim = Simulator()
+        sim = BulletClient(pb.DIRECT)
         try:
             body = sim.loadURDF(urdf_path, globalScaling=scale)
             sim.resetBasePositionAndOrientation(body, [0, 0, 0], [0, 0, 0, 1])   # world = base frame
@@ -688,8 +800,8 @@ def exterior_surface(urdf_path: str, scale: float, candidates: int = 8000, views
                 u = np.clip((K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2]).astype(int), 0, pixels - 1)
                 v = np.clip((K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]).astype(int), 0, pixels - 1)
                 cos = normals @ d                           # d points from the model to the camera
-                slack = footprint / np.maximum(np.abs(cos), 0.15) + 0.01 * radius
-                visible = (np.abs(depth[v, u] - cam[:, 2]) < slack) & (np.abs(cos) > 0.15)
+                slack = footprint / np.maximum(np.abs(cos), min_cos) + 0.01 * radius
+                visible = (np.abs(depth[v, u] - cam[:, 2]) < slack) & (np.abs(cos) > min_cos)
                 first = visible & (seen_from == 0)
                 seen_from[first] = np.sign(cos[first])
         finally:
@@ -700,33 +812,14 @@ def exterior_surface(urdf_path: str, scale: float, candidates: int = 8000, views
     return EXTERIOR_CACHE[key]
 
 
-@functools.lru_cache(maxsize=None)
-def urdf_mesh(urdf_path: str) -> tuple[np.ndarray, np.ndarray]:
-    """Visual mesh of a one-link URDF in its link frame (scale and origin applied), parsed from the OBJ."""
-    text = Path(urdf_path).read_text()
-    visual = text[text.index("<visual"):]
-    mesh = re.search(r'<mesh\s+filename="([^"]+)"(?:\s+scale="([^"]+)")?', visual)
-    origin = visual[:visual.index("<geometry")]
-    xyz, rpy = re.search(r'xyz="([^"]+)"', origin), re.search(r'rpy="([^"]+)"', origin)
-    scale = np.array([float(x) for x in mesh.group(2).split()]) if mesh.group(2) else np.ones(3)
-    offset = np.array([float(x) for x in xyz.group(1).split()]) if xyz else np.zeros(3)
-    roll, pitch, yaw = (float(x) for x in rpy.group(1).split()) if rpy else (0.0, 0.0, 0.0)
-    R = rotation_z(yaw) @ rotation_y(pitch) @ rotation_x(roll)       # URDF: fixed-axis roll, pitch, yaw
-    vertices, faces = [], []
-    for line in (Path(urdf_path).parent / mesh.group(1)).read_text().splitlines():
-        if line.startswith("v "):
-            vertices.append([float(x) for x in line.split()[1:4]])
-        elif line.startswith("f "):
-            idx = [int(tok.split("/")[0]) - 1 for tok in line.split()[1:]]
-            faces += [[idx[0], idx[i], idx[i + 1]] for i in range(1, len(idx) - 1)]   # fan triangulation
-    return (np.array(vertices) * scale) @ R.T + offset, np.array(faces)
-
-
 # pybullet_data's household-like meshes with the global scaling that brings each near 5-8 cm
 OBJECT_MODELS = (("duck_vhacd.urdf", 0.6), ("teddy_vhacd.urdf", 0.6), ("objects/mug.urdf", 0.5),
                  ("lego/lego.urdf", 1.8), ("jenga/jenga.urdf", 0.5), ("soccerball.urdf", 0.055))
+
+
 # pybullet_data/random_urdfs/000 .. 999, the paper's footnote set, less 168 (its OBJ holds only NaN vertices)
 RANDOM_SHAPES = tuple(i for i in range(1000) if i != 168)
+
 RANDOM_SHAPE_SCALE = 0.5      # about 5-6 cm across
 
 
@@ -740,14 +833,14 @@ class SceneObject:
     model: tuple | None = None   # (URDF path, scale) of a mesh model; None for a convex primitive
 
 
-def make_object(sim, scene: str, size: float, rng: np.random.Generator, rgba) -> SceneObject:
-    """One object of a scene kind (primitives scaled to `size`) created at the origin, to be placed."""
+def make_object(sim, scene: str, s: Settings, rng: np.random.Generator, rgba) -> SceneObject:
+    """One object of a scene kind (primitives about object_size_m across) created at the origin, to be placed."""
     kind = "cube" if scene == "cubes" else None
     if scene in ("fixed-primitives", "variable-primitives"):
         kind = ("cube", "cuboid", "cylinder", "prism")[rng.integers(4)]
     if kind is not None:
-        scale = rng.uniform(0.5, 2.0) if scene == "variable-primitives" else 1.0
-        h = size * scale / 2
+        scale = rng.uniform(*s.variable_scale) if scene == "variable-primitives" else 1.0
+        h = s.object_size_m * scale / 2
         if kind == "cube":
             (v, f), col = box_mesh((h, h, h)), dict(shapeType=pb.GEOM_BOX, halfExtents=[h, h, h])
             vis = dict(col)
@@ -763,7 +856,7 @@ def make_object(sim, scene: str, size: float, rng: np.random.Generator, rgba) ->
             v, f = prism_mesh(2.2 * h, 2 * h)
             col = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist())
             vis = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist(), indices=f.reshape(-1).tolist())
-        body = sim.createMultiBody(0.1, sim.createCollisionShape(**col),
+        body = sim.createMultiBody(s.object_mass_kg, sim.createCollisionShape(**col),
                                   sim.createVisualShape(**vis, rgbaColor=rgba),
                                   useMaximalCoordinates=True)
     else:
@@ -778,22 +871,195 @@ def make_object(sim, scene: str, size: float, rng: np.random.Generator, rgba) ->
         sim.changeVisualShape(body, -1, rgbaColor=rgba, textureUniqueId=-1)
         v, f = body_frame_mesh(sim, body, path, scale)
     # Objects may sleep: a resting pile then costs nothing per physics step until something touches it.
-    sim.changeDynamics(body, -1, lateralFriction=0.6, activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING)
+    sim.changeDynamics(body, -1, lateralFriction=s.object_friction,
+                       activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING)
     return SceneObject(body, v, f, float(np.linalg.norm(v[:, :2], axis=1).max()), float(-v[:, 2].min()),
                        None if kind is not None else (path, scale))
 
 
-class Simulator:
-    """One pybullet physics client: `sim.stepSimulation()` stands for
-    `pb.stepSimulation(physicsClientId=client)`, so every env owns its own world."""
+def build_workspace(sim, s: Settings) -> tuple[int, int, int]:
+    """Floor, four walls and the gripper on its constraint; returns (gripper, ghost, constraint) ids.
 
-    def __init__(self):
-        self.client = pb.connect(pb.DIRECT)
+    The wrist camera must not see the gripper: TinyRenderer draws a body without a visual shape from
+    its collision shapes, so the gripper's only visual is a transparent speck behind the camera, and
+    the outside view draws a separate ghost body in its place.
+    """
+    half, thick = s.workspace_m / 2, s.wall_thickness_m
 
-    def __getattr__(self, name):
-        bound = functools.partial(getattr(pb, name), physicsClientId=self.client)
-        setattr(self, name, bound)    # cached: later calls skip __getattr__
-        return bound
+    def static_box(half_extents, pos, rgba):
+        return sim.createMultiBody(0, sim.createCollisionShape(pb.GEOM_BOX, halfExtents=half_extents),
+                                  sim.createVisualShape(pb.GEOM_BOX, halfExtents=half_extents, rgbaColor=rgba),
+                                  pos)
+
+    static_box([half + 2 * thick] * 2 + [thick], [0, 0, -thick], FLOOR_RGBA)
+    wall_z = s.wall_height_m / 2
+    for sx in (-1, 1):
+        static_box([thick, half + 2 * thick, wall_z], [sx * (half + thick), 0, wall_z], WALL_RGBA)
+    for sy in (-1, 1):
+        static_box([half, thick, wall_z], [0, sy * (half + thick), wall_z], WALL_RGBA)
+    halves, centres = [b[0] for b in GRIPPER_BOXES], [b[1] for b in GRIPPER_BOXES]
+    col = sim.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, collisionFramePositions=centres)
+    speck = sim.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=[0, 0, -0.09],
+                                 rgbaColor=(0, 0, 0, 0))
+    gripper = sim.createMultiBody(s.gripper_mass_kg, col, speck, [0, 0, 1])
+    sim.changeDynamics(gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
+    vis = sim.createVisualShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, visualFramePositions=centres,
+                                    rgbaColors=[GRIPPER_RGBA] * 3)
+    ghost = sim.createMultiBody(0, -1, vis, [0, 0, -5])
+    constraint = sim.createConstraint(gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], [0, 0, 1])
+    return gripper, ghost, constraint
+
+
+def object_count(s: Settings, scene: str, rng: np.random.Generator) -> tuple[int, bool]:
+    """Number of objects (Table I) and whether they are heaped into piles (all but exploration_ratio of
+    the interactive task's scenes); primitive and shape piles are denser (Table II's caption)."""
+    heaped = s.num_piles > 0 and rng.random() >= s.exploration_ratio
+    if heaped and scene in ("fixed-primitives", "variable-primitives", "random-shapes"):
+        lo, hi = s.objects_per_pile_dense
+        return int(rng.integers(lo * s.num_piles, hi * s.num_piles + 1)), True
+    return int(rng.integers(s.min_objects, s.max_objects + 1)), heaped
+
+
+def scatter_positions(objects: list, s: Settings, rng: np.random.Generator) -> list:
+    """(xyz, yaw) resting poses apart from each other, by rejection; an object with no room is
+    dropped from above onto whatever lies below."""
+    half = s.workspace_m / 2
+    placed, poses = [], []
+    for obj in objects:
+        r = obj.radius_m
+        for _ in range(s.scatter_tries):
+            xy = rng.uniform(-half + r, half - r, 2)
+            if all(np.linalg.norm(xy - q) > r + rq + s.scatter_gap_m for q, rq in placed):
+                z = obj.half_height_m + s.drop_gap_m
+                break
+        else:
+            z = obj.half_height_m + s.no_room_drop_m
+        placed.append((xy, r))
+        poses.append((np.r_[xy, z], rng.uniform(-np.pi, np.pi)))
+    return poses
+
+
+def pile_positions(objects: list, s: Settings, rng: np.random.Generator) -> list:
+    """(xyz, yaw) drop poses on square pyramids of spots over num_piles random centres.
+
+    Spots are filled in order of ring (distance from the pile's axis) plus pile_layer_cost per layer,
+    so a pile grows from its bottom centre outward and upward. The first object (the target, when
+    there is one) takes the bottom centre of the first pile, and the rest falls around and onto it.
+    """
+    half = s.workspace_m / 2
+    centres = []
+    while len(centres) < s.num_piles:
+        c = rng.uniform(-half + s.pile_margin_m, half - s.pile_margin_m, 2)
+        if all(np.linalg.norm(c - q) > s.pile_min_apart_m for q in centres) or rng.random() < s.pile_overlap_chance:
+            centres.append(c)
+    share = np.array_split(np.arange(len(objects)), s.num_piles)
+    poses = [None] * len(objects)
+    n = s.pile_layers
+    for centre, members in zip(centres, share):
+        spacing = 2 * max(objects[i].radius_m for i in members) * s.pile_spacing_ratio
+        step_z = 2 * max(objects[i].half_height_m for i in members) + s.pile_layer_gap_m
+        spots = [(ring + s.pile_layer_cost * layer + s.pile_spot_noise * rng.random(), (x, y, layer))
+                 for layer in range(n) for x in np.arange(n - layer) - (n - 1 - layer) / 2
+                 for y in np.arange(n - layer) - (n - 1 - layer) / 2 for ring in [max(abs(x), abs(y))]]
+        spots.sort(key=lambda t: t[0])
+        for i, (_, (x, y, layer)) in zip(members, spots):
+            jitter = rng.normal(0, s.pile_jitter_ratio * spacing, 2)
+            z = objects[i].half_height_m + s.drop_gap_m + layer * step_z
+            xyz = np.r_[centre + spacing * np.array([x, y]) + jitter, z]
+            poses[i] = (xyz, rng.uniform(-np.pi, np.pi))
+    return poses
+
+
+SETTLE_CHECK_EVERY = 8   # physics steps between checks that everything is at rest (a check costs a few)
+
+
+def objects_at_rest(sim, objects: list, s: Settings) -> bool:
+    if not objects:
+        return True
+    velocity = np.array([sim.getBaseVelocity(o.body)[0] for o in objects])
+    return float(np.max(np.sum(velocity ** 2, axis=1))) < s.settle_speed ** 2
+
+
+def settle(sim, objects: list, s: Settings, max_steps: int) -> bool:
+    """Step physics until every object is at rest, then put them all to sleep; False if still moving.
+
+    pybullet only lets bodies sleep after 2 s at rest; sending them to sleep at once keeps later
+    physics steps cheap (a resting pile then costs nothing until something touches it).
+    """
+    for step in range(max_steps):
+        sim.stepSimulation()
+        if step % SETTLE_CHECK_EVERY == SETTLE_CHECK_EVERY - 1 and objects_at_rest(sim, objects, s):
+            for o in objects:
+                sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
+            return True
+    return False
+
+
+def target_surface(target: SceneObject, s: Settings, rng: np.random.Generator):
+    """Ground truth of "seen": surface_points points on the target in its own frame (so they follow it
+    when pushed), their outward normals, and the target's visible surface area (m^2)."""
+    if target.model is None:     # a convex primitive: all of its surface can be seen
+        points, normals = sample_surface(target.vertices, target.faces, s.surface_points, rng)
+        return points, normals, mesh_area(target.vertices, target.faces)
+    points, normals, area = exterior_surface(*target.model, s.seen_min_cos)
+    pick = rng.choice(len(points), s.surface_points, replace=False)
+    return points[pick], normals[pick], area
+
+
+@dataclass
+class Scene:
+    objects: list               # SceneObject, the target first when there is one
+    target_present: bool
+    heaped: bool                # objects dropped into piles
+    target_points: np.ndarray   # (surface_points, 3) ground-truth points in the target's frame; (0, 3) if absent
+    target_normals: np.ndarray  # (surface_points, 3) their outward unit normals
+    target_area_m2: float       # the target's visible surface (the nominal cube's when absent)
+
+
+def build_scene(sim, s: Settings, scene: str, rng: np.random.Generator) -> Scene:
+    """Draw one scene of a kind into a world holding only the workspace: objects, their resting poses
+    (scattered, or heaped with the target at the bottom of a pile), and the target's ground truth."""
+    count, heaped = object_count(s, scene, rng)
+    target_present = bool(rng.random() >= s.no_target_prob)
+    objects = []
+    for i in range(count):
+        rgba = TARGET_RGBA if i == 0 and target_present else OTHER_RGBA[rng.integers(len(OTHER_RGBA))]
+        objects.append(make_object(sim, scene, s, rng, rgba))
+    poses = (pile_positions if heaped else scatter_positions)(objects, s, rng)
+    for obj, (xyz, yaw) in zip(objects, poses):
+        sim.resetBasePositionAndOrientation(obj.body, xyz, pb.getQuaternionFromEuler([0, 0, yaw]))
+    settle(sim, objects, s, s.settle_pile_substeps if heaped else s.settle_scatter_substeps)
+    if target_present:
+        points, normals, area = target_surface(objects[0], s, rng)
+    else:
+        points = normals = np.zeros((0, 3))
+        area = s.nominal_target_area_m2
+    return Scene(objects, target_present, heaped, points, normals, area)
+
+
+# ================================================================================================
+# Simulation III (Sec. III-B.3, III-C): the object finding task as a Gymnasium environment, rewards.
+# ================================================================================================
+
+REACH_CHECK_EVERY = 4   # physics steps between checks of the gripper's progress towards an action's pose
+ACTION_MOVES = 5        # dx, dy, dz, roll, yaw; then terminate
+ACTION_SIZE = ACTION_MOVES + 1
+OUTSIDE_VIEW = (320, 240)   # width, height of render() and of each demo panel
+
+
+@dataclass(frozen=True)
+class AgentView:
+    """The part of the world a searching agent is granted, one step's worth (`ObjectFindingEnv.agent_view`)."""
+
+    s: Settings
+    volume: TSDFVolume            # the agent's own fused views (read only)
+    K: np.ndarray                 # (3, 3) wrist camera intrinsics
+    T_world_tool: np.ndarray      # (4, 4) the gripper's pose (proprioception)
+    target_area_m2: float         # the target's surface: a searcher knows what it looks for
+
+    def perceived_target_share(self) -> float:
+        """Seen target area over the target's own: the searchers' stop rule (the truth decides success)."""
+        return self.volume.seen_target_area_m2() / self.target_area_m2
 
 
 class ObjectFindingEnv(gym.Env):
@@ -818,170 +1084,37 @@ class ObjectFindingEnv(gym.Env):
         self.task, self.scene, self.render_mode = task, scene, render_mode
         self.s = s = TASKS[task]
         self._seed = seed
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (71,), np.float32)
-        self.volume = TSDFVolume(s.workspace_m, s.volume_height_m, s.voxels_per_side, s.trunc_m, s.max_weight,
-                                 s.detection_threshold, s.seen_min_cos, s.outline_pixel_share)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (STATE_SIZE,), np.float32)
+        self.volume = TSDFVolume(s)
         self.K = intrinsics(s)
-        self.sim = Simulator()
+        self.sim = BulletClient(pb.DIRECT)
         self.timings = dict.fromkeys(("physics", "render", "detect", "integrate", "encode"), 0.0)
         self.last_views: dict = {}   # the latest rgb, depth and detections, for demos and tests
 
-    # --- scene construction -----------------------------------------------------------------
-
-    def _build_static(self) -> None:
-        """Floor, four walls and the gripper on its constraint."""
-        s, sim = self.s, self.sim
-        half = s.workspace_m / 2
-        thick = 0.02
-
-        def static_box(half_extents, pos, rgba):
-            return sim.createMultiBody(0, sim.createCollisionShape(pb.GEOM_BOX, halfExtents=half_extents),
-                                      sim.createVisualShape(pb.GEOM_BOX, halfExtents=half_extents,
-                                                            rgbaColor=rgba),
-                                      pos)
-
-        self.floor = static_box([half + 2 * thick] * 2 + [thick], [0, 0, -thick], (0.78, 0.76, 0.72, 1))
-        wall_rgba = (0.55, 0.6, 0.68, 1)
-        wall_z = s.wall_height_m / 2
-        self.walls = [static_box([thick, half + 2 * thick, wall_z], [sx * (half + thick), 0, wall_z],
-                                 wall_rgba) for sx in (-1, 1)]
-        self.walls += [static_box([half, thick, wall_z], [0, sy * (half + thick), wall_z], wall_rgba)
-                       for sy in (-1, 1)]
-        # The gripper (GRIPPER_BOXES). The wrist camera must not see it, so the outside view draws a ghost.
-        boxes = GRIPPER_BOXES
-        col = sim.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=[b[0] for b in boxes],
-                                           collisionFramePositions=[b[1] for b in boxes])
-        # TinyRenderer draws a body without a visual shape from its collision shapes, so the gripper
-        # gets a tiny sphere behind the camera as its only visual
-        speck = sim.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=[0, 0, -0.09],
-                                     rgbaColor=(0, 0, 0, 0))
-        self.gripper = sim.createMultiBody(0.5, col, speck, [0, 0, 1])
-        sim.changeDynamics(self.gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
-        vis = sim.createVisualShapeArray([pb.GEOM_BOX] * 3, halfExtents=[b[0] for b in boxes],
-                                        visualFramePositions=[b[1] for b in boxes],
-                                        rgbaColors=[(0.25, 0.25, 0.28, 1)] * 3)
-        self.ghost = sim.createMultiBody(0, -1, vis, [0, 0, -5])
-        self.constraint = sim.createConstraint(self.gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0],
-                                              [0, 0, 1])
-
-    def _object_count(self, rng) -> tuple[int, bool]:
-        """Number of objects and whether they are heaped into piles."""
-        s = self.s
-        piles = s.piles > 0 and rng.random() >= s.exploration_ratio
-        if piles and self.scene in ("fixed-primitives", "variable-primitives", "random-shapes"):
-            lo, hi = s.objects_per_pile_dense
-            return int(rng.integers(lo * s.piles, hi * s.piles + 1)), True
-        return int(rng.integers(s.min_objects, s.max_objects + 1)), piles
-
-    def _scatter_positions(self, objects, rng) -> list:
-        """Non-overlapping resting positions by rejection; an object with no room is dropped on top."""
-        half = self.s.workspace_m / 2
-        placed, poses = [], []
-        for obj in objects:
-            r = obj.radius_m
-            for _ in range(50):
-                xy = rng.uniform(-half + r, half - r, 2)
-                if all(np.linalg.norm(xy - q) > r + rq + 0.005 for q, rq in placed):
-                    z = obj.half_height_m + 0.002
-                    break
-            else:
-                z = obj.half_height_m + 0.1      # no free spot: it falls onto whatever is below
-            placed.append((xy, r))
-            poses.append((np.r_[xy, z], rng.uniform(-np.pi, np.pi)))
-        return poses
-
-    def _pile_positions(self, objects, rng) -> list:
-        """Pyramids of drop spots over `piles` random centres, filled from the bottom centre outward.
-
-        The first object (the target, when there is one) gets the bottom centre spot of the first
-        pile, so the rest of the pile falls around and onto it.
-        """
-        s = self.s
-        half = s.workspace_m / 2
-        centres = []
-        while len(centres) < s.piles:
-            c = rng.uniform(-half + 0.12, half - 0.12, 2)
-            if all(np.linalg.norm(c - q) > 0.2 for q in centres) or rng.random() < 0.02:
-                centres.append(c)
-        share = np.array_split(np.arange(len(objects)), s.piles)
-        poses = [None] * len(objects)
-        for centre, members in zip(centres, share):
-            spacing = 2 * max(objects[i].radius_m for i in members) * 0.8
-            step_z = 2 * max(objects[i].half_height_m for i in members) + 0.005
-            spots = [(ring + 0.45 * layer + 0.01 * rng.random(), (x, y, layer))
-                     for layer in range(7) for x in np.arange(7 - layer) - (6 - layer) / 2
-                     for y in np.arange(7 - layer) - (6 - layer) / 2 for ring in [max(abs(x), abs(y))]]
-            spots.sort(key=lambda t: t[0])
-            for i, (_, (x, y, layer)) in zip(members, spots):
-                jitter = rng.normal(0, 0.1 * spacing, 2)
-                z = objects[i].half_height_m + 0.002 + layer * step_z
-                xyz = np.r_[centre + spacing * np.array([x, y]) + jitter, z]
-                poses[i] = (xyz, rng.uniform(-np.pi, np.pi))
-        return poses
-
-    def _settle(self, max_steps: int) -> bool:
-        """Step physics until every object is at rest (checked every 8 steps), then put them to sleep.
-
-        pybullet only lets bodies sleep after 2 s at rest; sending them to sleep at once keeps later
-        physics steps cheap. Returns False if objects were still moving after max_steps.
-        """
-        for step in range(max_steps):
-            self.sim.stepSimulation()
-            if step % 8 == 7 and self._objects_at_rest():
-                for o in self.objects:
-                    self.sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
-                return True
-        return False
-
-    def _objects_at_rest(self) -> bool:
-        if not self.objects:
-            return True
-        velocity = np.array([self.sim.getBaseVelocity(o.body)[0] for o in self.objects])
-        return float(np.max(np.sum(velocity ** 2, axis=1))) < self.s.settle_speed ** 2
+    # --- a new scene -----------------------------------------------------------------------------
 
     def _build_scene(self, rng) -> None:
+        """A fresh world: physics settings, the workspace with the gripper, then a drawn scene."""
         s, sim = self.s, self.sim
         sim.resetSimulation()
         sim.setGravity(0, 0, -9.81)
-        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / s.physics_hz,
-                                      numSolverIterations=s.solver_iterations)
-        self._build_static()
-        count, piles = self._object_count(rng)
-        self.target_present = bool(rng.random() >= s.no_target_prob)
-        self.objects = []
-        for i in range(count):
-            is_target = i == 0 and self.target_present
-            rgba = TARGET_RGBA if is_target else OTHER_RGBA[rng.integers(len(OTHER_RGBA))]
-            self.objects.append(make_object(sim, self.scene, s.object_size_m, rng, rgba))
-        place = self._pile_positions if piles else self._scatter_positions
-        poses = place(self.objects, rng)
-        for obj, (xyz, yaw) in zip(self.objects, poses):
-            sim.resetBasePositionAndOrientation(obj.body, xyz, pb.getQuaternionFromEuler([0, 0, yaw]))
-        self._settle(480 if piles else 240)
-        self.piles, self.disturbed = piles, False
-        if self.target_present:
-            target = self.objects[0]
-            if target.model is None:     # a convex primitive: all of its surface can be seen
-                self.target_points, self.target_normals = sample_surface(target.vertices, target.faces,
-                                                                         s.surface_points, rng)
-                self.target_area_m2 = mesh_area(target.vertices, target.faces)
-            else:
-                points, normals, self.target_area_m2 = exterior_surface(*target.model)
-                pick = rng.choice(len(points), s.surface_points, replace=False)
-                self.target_points, self.target_normals = points[pick], normals[pick]
-        else:
-            self.target_points = self.target_normals = np.zeros((0, 3))
-            self.target_area_m2 = 6 * s.object_size_m ** 2
-        self.target_seen = np.zeros(len(self.target_points), bool)
+        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / s.physics_hz, numSolverIterations=s.solver_iterations)
+        self.gripper, self.ghost, self.constraint = build_workspace(sim, s)
+        scene = build_scene(sim, s, self.scene, rng)
+        self.objects, self.target_present, self.heaped = scene.objects, scene.target_present, scene.heaped
+        self.target_points, self.target_normals = scene.target_points, scene.target_normals
+        self.target_area_m2 = scene.target_area_m2
+        self.target_seen = np.zeros(len(self.target_points), bool)   # (surface_points,) ever seen
+        self.disturbed = False   # objects still moving after the last push
 
     def _place_gripper(self, rng) -> None:
         """Random x, y, height and yaw, roll 0; resampled while it would overlap an object."""
         s, sim = self.s, self.sim
-        half = s.workspace_m / 2 - 0.05
-        for attempt in range(20):
-            xyz = np.r_[rng.uniform(-half, half, 2), rng.uniform(0.1, s.ceiling_m)]
-            if attempt == 19:
+        half = s.workspace_m / 2 - s.gripper_start_margin_m
+        for attempt in range(s.gripper_start_tries):
+            xyz = np.r_[rng.uniform(-half, half, 2), rng.uniform(s.gripper_start_min_z_m, s.ceiling_m)]
+            if attempt == s.gripper_start_tries - 1:   # the last try: above everything
                 xyz[2] = s.ceiling_m
             yaw = rng.uniform(-np.pi, np.pi)
             self._teleport(xyz, gripper_rotation(yaw, 0.0))
@@ -1030,16 +1163,16 @@ class ObjectFindingEnv(gym.Env):
         last = T[:3, 3]
         for substep in range(1, s.max_substeps + 1):
             sim.stepSimulation()
-            if substep % 4 == 0:
+            if substep % REACH_CHECK_EVERY == 0:
                 pos, orn = sim.getBasePositionAndOrientation(self.gripper)
                 pos = np.array(pos)
                 angle = 2 * np.arccos(min(1.0, abs(float(np.dot(orn, q_goal)))))
-                reached = np.linalg.norm(pos - goal) < 0.003 and angle < 0.02
-                stalled = np.linalg.norm(pos - last) < 0.0005        # blocked by a wall or a heavy pile
+                reached = np.linalg.norm(pos - goal) < s.reach_tol_m and angle < s.reach_tol_rad
+                stalled = np.linalg.norm(pos - last) < s.stall_m        # blocked by a wall or a heavy pile
                 if reached or stalled:
                     break
                 last = pos
-        self.disturbed = not self._settle(s.settle_substeps)
+        self.disturbed = not settle(sim, self.objects, s, s.settle_substeps)
 
     # --- perception of one view -----------------------------------------------------------------
 
@@ -1086,18 +1219,14 @@ class ObjectFindingEnv(gym.Env):
         T = self.gripper_pose()
         yaw, roll = yaw_roll_of(T[:3, :3])
         state = encode_state(self.volume, T[:3, 3], yaw, roll, T[2, 3], self.s.crop_m,
-                             self.s.nominal_target_voxels)
+                             self.s.nominal_target_voxel_faces)
         self.timings["encode"] = 1e3 * (time.perf_counter() - t0)
         return state
 
-    def perceived_target_fraction(self) -> float:
-        """The share of the target's surface the volume has seen, for the searchers' stop rule.
-
-        The volume's own estimate is relative to the nominal cube; a searcher knows what it is looking
-        for, so the estimate is rescaled by the target's surface area (the nominal cube's when absent).
-        """
-        nominal_area = 6 * self.s.object_size_m ** 2
-        return self.volume.perceived_target_fraction(self.s) * nominal_area / self.target_area_m2
+    def agent_view(self) -> AgentView:
+        """What an agent may know: its settings, the volume, the camera, its own pose and the perceived
+        share. Agents read nothing else of the env (the simulator's state is the judge, not an input)."""
+        return AgentView(self.s, self.volume, self.K, self.gripper_pose(), self.target_area_m2)
 
     def _info(self) -> dict:
         seen = float(self.target_seen.mean()) if self.target_present else 0.0
@@ -1121,10 +1250,10 @@ class ObjectFindingEnv(gym.Env):
 
     def step(self, action):
         s = self.s
-        action = np.clip(np.asarray(action, np.float64).reshape(6), -1.0, 1.0)
+        action = np.clip(np.asarray(action, np.float64).reshape(ACTION_SIZE), -1.0, 1.0)
         self.steps += 1
         reward = -s.time_penalty
-        if action[5] > 0:   # terminate: claim the target was found, or that there is none
+        if action[ACTION_MOVES] > 0:   # terminate: claim the target was found, or that there is none
             info = self._info()
             success = info["target_observed"] if self.target_present else True
             reward += s.detection_reward if success else -s.detection_reward
@@ -1151,7 +1280,7 @@ class ObjectFindingEnv(gym.Env):
             return self.outside_view()
         return None
 
-    def outside_view(self, width: int = 320, height: int = 240) -> np.ndarray:
+    def outside_view(self, width: int = OUTSIDE_VIEW[0], height: int = OUTSIDE_VIEW[1]) -> np.ndarray:
         """The scene from a fixed oblique camera, with the gripper's ghost drawn in, (H, W, 3) uint8."""
         s, sim = self.s, self.sim
         T_tool = self.gripper_pose()
@@ -1174,25 +1303,41 @@ class ObjectFindingEnv(gym.Env):
             self.sim.disconnect()
             self.sim = None
 
+
+# gym.make("objfind/ActivePerception-v0", scene="cubes"): the three Table I presets as Gymnasium ids.
+GYM_IDS = {"objfind/ActivePerception-v0": "ap", "objfind/ActivePerceptionLarge-v0": "ap-large",
+           "objfind/InteractivePerception-v0": "ip"}
+for _id, _task in GYM_IDS.items():
+    if _id not in gym.registry:
+        gym.register(id=_id, entry_point="objfind:ObjectFindingEnv", kwargs=dict(task=_task))
+
+
 # ================================================================================================
-# Agents. An agent has reset(env) and act(obs, env) -> action in the env's Box(-1, 1, (6,)).
+# Agents (Sec. IV-B): an agent has reset(view) and act(obs, view) -> action in the env's Box(-1, 1, (6,)),
+# where view is the env's AgentView: what a searcher may know. Two simple agents and the two baselines.
 # ================================================================================================
+
+def stop_action() -> np.ndarray:
+    """The action that terminates: stay, and claim the target was found (or that there is none)."""
+    action = np.zeros(ACTION_SIZE, np.float32)
+    action[ACTION_MOVES] = 1.0
+    return action
 
 
 class RandomAgent:
     """Uniform random displacements; terminates with a small probability per step."""
 
-    terminate_prob = 0.02
+    terminate_prob = 0.02   # about 50 steps per episode, well inside the horizon
 
     def __init__(self, seed: int | None = None):
         self.rng = np.random.default_rng(seed)
 
-    def reset(self, env) -> None:
+    def reset(self, view: AgentView) -> None:
         pass
 
-    def act(self, obs, env) -> np.ndarray:
-        action = self.rng.uniform(-1, 1, 6).astype(np.float32)
-        action[5] = 1.0 if self.rng.random() < self.terminate_prob else -1.0
+    def act(self, obs, view: AgentView) -> np.ndarray:
+        action = self.rng.uniform(-1, 1, ACTION_SIZE).astype(np.float32)
+        action[ACTION_MOVES] = 1.0 if self.rng.random() < self.terminate_prob else -1.0
         return action
 
 
@@ -1200,20 +1345,19 @@ class ScriptedAgent:
     """A hand-written searcher: rise to the ceiling, tilt, then turn on the spot while drifting to the
     workspace centre; terminate once the volume holds a perceived target or after one full turn."""
 
-    tilt_rad = 0.6
+    tilt_rad = 0.6   # looks past the walls' tops from the ceiling
 
-    def reset(self, env) -> None:
+    def reset(self, view: AgentView) -> None:
         self.turned_rad = 0.0
 
-    def act(self, obs, env) -> np.ndarray:
-        s = env.s
-        T = env.gripper_pose()
+    def act(self, obs, view: AgentView) -> np.ndarray:
+        s = view.s
+        T = view.T_world_tool
         yaw, roll = yaw_roll_of(T[:3, :3])
-        action = np.zeros(6, np.float32)
-        action[5] = -1.0
-        if env.perceived_target_fraction() >= s.seen_threshold or self.turned_rad >= 2 * np.pi:
-            action[5] = 1.0
-            return action
+        if view.perceived_target_share() >= s.seen_threshold or self.turned_rad >= 2 * np.pi:
+            return stop_action()
+        action = np.zeros(ACTION_SIZE, np.float32)
+        action[ACTION_MOVES] = -1.0
         to_centre = rotation_z(yaw).T @ np.r_[-T[0, 3], -T[1, 3], s.ceiling_m - T[2, 3]]
         action[:3] = np.clip(to_centre / s.max_step_m, -1, 1)
         action[3] = np.clip((self.tilt_rad - roll) / s.max_turn_rad, -1, 1)
@@ -1226,7 +1370,7 @@ class ScriptedAgent:
 def perceived_target_centre(volume: TSDFVolume, s: Settings):
     """World centre of the detection voxels above the threshold, or None when nothing is detected."""
     hits = np.argwhere(volume.detections > s.detection_threshold)
-    if len(hits) < 3:   # a lone voxel is more likely noise than the target
+    if len(hits) < s.gnbv_min_detections:   # a lone voxel is more likely noise than the target
         return None
     return volume.origin + (hits.mean(axis=0) + 0.5) * volume.voxel_m
 
@@ -1240,27 +1384,25 @@ class GreedyNextBestView:
     centre. Terminates above 97 % explored or 20 % of the target perceived.
     """
 
-    ray_grid = (16, 12)            # rays cast per candidate view (a subsampled image)
-
     def __init__(self, seed: int | None = None):
         self.rng = np.random.default_rng(seed)
 
-    def reset(self, env) -> None:
-        s = env.s
+    def reset(self, view: AgentView) -> None:
+        s = view.s
         self.samples = s.gnbv_samples
         K = intrinsics(s)
-        u = (np.arange(self.ray_grid[0]) + 0.5) * s.image_width / self.ray_grid[0]
-        v = (np.arange(self.ray_grid[1]) + 0.5) * s.image_height / self.ray_grid[1]
+        u = (np.arange(s.gnbv_rays[0]) + 0.5) * s.image_width / s.gnbv_rays[0]   # a subsampled image
+        v = (np.arange(s.gnbv_rays[1]) + 0.5) * s.image_height / s.gnbv_rays[1]
         uu, vv = np.meshgrid(u, v)
         rays = np.stack([(uu.ravel() - K[0, 2]) / K[0, 0], (vv.ravel() - K[1, 2]) / K[1, 1],
                          np.ones(uu.size)], 1)                                # (R, 3) at depth 1
-        depths = np.arange(s.near_m, s.far_m, env.volume.voxel_m)                # one sample per voxel
+        depths = np.arange(s.near_m, s.far_m, view.volume.voxel_m)                # one sample per voxel
         self.ray_points = (rays[:, None, :] * depths[None, :, None]).astype(np.float32)   # (R, D, 3)
 
     def candidate_actions(self) -> np.ndarray:
         """(n, 6) random actions that do not terminate: the poses one step away."""
-        actions = self.rng.uniform(-1, 1, (self.samples, 6))
-        actions[:, 5] = -1.0
+        actions = self.rng.uniform(-1, 1, (self.samples, ACTION_SIZE))
+        actions[:, ACTION_MOVES] = -1.0
         return actions
 
     def newly_observed(self, volume: TSDFVolume, T_cameras: np.ndarray, ee_xyz, crop_m: float) -> np.ndarray:
@@ -1296,17 +1438,17 @@ class GreedyNextBestView:
                 errors[c] = np.hypot(K[0, 0] * p[0] / p[2], K[1, 1] * p[1] / p[2])
         return errors
 
-    def act(self, obs, env) -> np.ndarray:
-        s, volume = env.s, env.volume
+    def act(self, obs, view: AgentView) -> np.ndarray:
+        s, volume = view.s, view.volume
         if (volume.explored_fraction() > s.gnbv_explored_to_stop
-                or env.perceived_target_fraction() > s.seen_threshold):
-            return np.array([0, 0, 0, 0, 0, 1.0], np.float32)
-        T = env.gripper_pose()
+                or view.perceived_target_share() > s.seen_threshold):
+            return stop_action()
+        T = view.T_world_tool
         actions = self.candidate_actions()
         cameras = np.stack([camera_pose(action_goal(T, a, s), s) for a in actions])
         target = perceived_target_centre(volume, s)
         if target is not None:
-            best = int(np.argmin(self.centring_error(cameras, target, env.K)))
+            best = int(np.argmin(self.centring_error(cameras, target, view.K)))
         else:
             best = int(np.argmax(self.newly_observed(volume, cameras, T[:3, 3], s.crop_m)))
         return actions[best].astype(np.float32)
@@ -1353,16 +1495,16 @@ class GridExhaustiveSearch:
     grid, where it claims there is no target.
     """
 
-    tries_per_node = 3   # a node the gripper cannot reach (blocked by a pile) is given up after this
+    node_tol_m = 0.01   # a node counts as reached within this distance
 
-    def reset(self, env) -> None:
-        s = env.s
+    def reset(self, view: AgentView) -> None:
+        s = view.s
         spacing = s.max_step_m
         n = int(round(s.workspace_m / spacing))
         axis = (np.arange(n) + 0.5) * spacing - s.workspace_m / 2
-        self.height_m = s.object_size_m + 0.01                   # fingertips just above the lowest cubes
+        self.height_m = s.object_size_m + s.ges_clearance_m       # fingertips just above the lowest cubes
         self.nodes = np.stack(np.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
-        start = env.gripper_pose()[:2, 3]
+        start = view.T_world_tool[:2, 3]
         tour = self.nearest_neighbour(self.nodes, int(np.argmin(np.linalg.norm(self.nodes - start, axis=1))))
         self.route = two_opt(self.nodes, tour, closed=False)
         self.next, self.tries = 0, 0
@@ -1377,28 +1519,28 @@ class GridExhaustiveSearch:
             left[tour[-1]] = False
         return np.array(tour)
 
-    def act(self, obs, env) -> np.ndarray:
-        s = env.s
-        T = env.gripper_pose()
+    def act(self, obs, view: AgentView) -> np.ndarray:
+        s = view.s
+        T = view.T_world_tool
         yaw, roll = yaw_roll_of(T[:3, :3])
         while self.next < len(self.route):            # skip the nodes reached or given up
             offset = np.r_[self.nodes[self.route[self.next]], self.height_m] - T[:3, 3]
-            if np.linalg.norm(offset[:2]) > 0.01 and self.tries < self.tries_per_node:
+            if np.linalg.norm(offset[:2]) > self.node_tol_m and self.tries < s.ges_tries_per_node:
                 break
             self.next, self.tries = self.next + 1, 0
-        if env.perceived_target_fraction() > s.seen_threshold or self.next >= len(self.route):
-            return np.array([0, 0, 0, 0, 0, 1.0], np.float32)
-        self.tries += abs(offset[2]) < 0.01                      # only count tries at the sweep height
+        if view.perceived_target_share() > s.seen_threshold or self.next >= len(self.route):
+            return stop_action()
+        self.tries += abs(offset[2]) < self.node_tol_m           # only count tries at the sweep height
         step = rotation_z(yaw).T @ offset / s.max_step_m
-        action = np.zeros(6, np.float32)
+        action = np.zeros(ACTION_SIZE, np.float32)
         action[:3] = np.clip(step, -1, 1)
         action[3] = np.clip(-roll / s.max_turn_rad, -1, 1)
-        action[5] = -1.0
+        action[ACTION_MOVES] = -1.0
         return action
 
 
 # ================================================================================================
-# Learned agents (Sec. III-B.4, IV-A): a hand-written PPO, the A3DE and I3DE policies.
+# Learning (Sec. III-B.4, IV-A): a hand-written PPO for the A3DE and I3DE policies, checkpoints, logs.
 # ================================================================================================
 
 class ActorCritic(nn.Module):
@@ -1409,7 +1551,7 @@ class ActorCritic(nn.Module):
     saved with the weights: the 71 values span scales from 1e-3 (a far bin) to 1 (the roll).
     """
 
-    moves = 5
+    moves = ACTION_MOVES
 
     def __init__(self, obs_dim: int, p: PPOSettings):
         super().__init__()
@@ -1467,7 +1609,8 @@ class ActorCritic(nn.Module):
 
 def env_actions(raw: np.ndarray) -> np.ndarray:
     """Raw policy samples -> the env's Box: displacements clipped to [-1, 1], terminate as +-1."""
-    return np.concatenate([np.clip(raw[:, :5], -1, 1), np.where(raw[:, 5:] > 0.5, 1.0, -1.0)], 1).astype(np.float32)
+    moves, stop = np.clip(raw[:, :ACTION_MOVES], -1, 1), np.where(raw[:, ACTION_MOVES:] > 0.5, 1.0, -1.0)
+    return np.concatenate([moves, stop], 1).astype(np.float32)
 
 
 class PPOAgent:
@@ -1478,10 +1621,10 @@ class PPOAgent:
         self.model.load_state_dict(checkpoint["model"])
         self.model.eval()
 
-    def reset(self, env) -> None:
+    def reset(self, view: AgentView) -> None:
         pass
 
-    def act(self, obs, env) -> np.ndarray:
+    def act(self, obs, view: AgentView) -> np.ndarray:
         with torch.no_grad():
             out = self.model.actor_output(torch.as_tensor(obs, dtype=torch.float32)[None]).numpy()
         out[:, -1] = out[:, -1] > 0.0   # p > 0.5
@@ -1489,7 +1632,12 @@ class PPOAgent:
 
 
 def gae(rewards, values, dones, last_value, gamma: float, lam: float):
-    """Generalised advantage estimates and returns over (T, W) arrays; dones[t] ends the episode at t."""
+    """Generalised advantage estimation (Schulman et al. 2016, "High-Dimensional Continuous Control Using
+    Generalized Advantage Estimation", eq. 16) over (T, W) arrays; dones[t] ends the episode at t.
+
+    A_t = sum_l (gamma lam)^l delta_{t+l}, with delta_t = r_t + gamma V(s_{t+1}) - V(s_t), computed
+    backwards as A_t = delta_t + gamma lam A_{t+1}; the critic's targets are A_t + V(s_t).
+    """
     T = len(rewards)
     advantages = np.zeros_like(rewards)
     running = np.zeros_like(last_value)
@@ -1503,7 +1651,11 @@ def gae(rewards, values, dones, last_value, gamma: float, lam: float):
 
 
 def ppo_update(model: ActorCritic, optimizer, batch: dict, p: PPOSettings, generator) -> dict:
-    """Clipped-objective epochs over minibatches of one batch; returns the mean losses and statistics."""
+    """One PPO update (Schulman et al. 2017, "Proximal Policy Optimization Algorithms", eq. 7 and 9):
+    epochs over shuffled minibatches of the clipped surrogate, a value loss and an entropy bonus.
+
+    Advantages are standardised per batch. Returns the mean losses and statistics for the log.
+    """
     n = len(batch["obs"])
     adv = batch["advantages"]
     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
@@ -1515,6 +1667,7 @@ def ppo_update(model: ActorCritic, optimizer, batch: dict, p: PPOSettings, gener
             logp, entropy = model.evaluate(batch["obs"][i], batch["raw"][i])
             log_ratio = logp - batch["logp"][i]
             ratio = log_ratio.exp()
+            # L^CLIP: the ratio's gain is cut off once it leaves [1 - clip, 1 + clip] in the advantage's favour
             policy_loss = -torch.min(ratio * adv[i], ratio.clamp(1 - p.clip, 1 + p.clip) * adv[i]).mean()
             value_loss = 0.5 * (model.value(batch["obs"][i]) - batch["returns"][i]).pow(2).mean()
             loss = policy_loss + p.value_coef * value_loss - p.entropy_coef * entropy.mean()
@@ -1526,6 +1679,8 @@ def ppo_update(model: ActorCritic, optimizer, batch: dict, p: PPOSettings, gener
                 stats["policy_loss"].append(policy_loss.item())
                 stats["value_loss"].append(value_loss.item())
                 stats["entropy"].append(entropy.mean().item())
+                # KL(old || new) estimated as E[(r - 1) - log r], unbiased and never negative (the "k3"
+                # estimator of J. Schulman, "Approximating KL Divergence", 2020)
                 stats["approx_kl"].append(((ratio - 1) - log_ratio).mean().item())
                 stats["clip_fraction"].append(((ratio - 1).abs() > p.clip).float().mean().item())
     return {k: float(np.mean(v)) for k, v in stats.items()}
@@ -1586,6 +1741,20 @@ def derived_seed(*key: int) -> int:
     return int(np.random.SeedSequence(list(key)).generate_state(1)[0])
 
 
+def read_checkpoint(path: Path) -> dict:
+    """Load an objfind checkpoint with torch.load(weights_only=True), or explain in one line why not."""
+    if not path.is_file():
+        raise UsageError(f"checkpoint {str(path)!r} not found")
+    import torch
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:   # truncated, not a torch file, or unsafe to unpickle
+        raise UsageError(f"{str(path)!r} is not a readable checkpoint ({type(error).__name__})") from None
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != "objfind-ppo":
+        raise UsageError(f"{str(path)!r} is not an objfind checkpoint")
+    return checkpoint
+
+
 def save_checkpoint(path: Path, checkpoint: dict) -> None:
     """torch.save to a temporary file, then rename: a killed run never leaves a half-written checkpoint."""
     tmp = path.with_name(path.name + ".tmp")
@@ -1593,8 +1762,54 @@ def save_checkpoint(path: Path, checkpoint: dict) -> None:
     os.replace(tmp, path)
 
 
+def write_csv(rows: list, path: Path, fields: tuple | None = None) -> None:
+    """Rows (episodes, or updates of a training log) written to a temporary file and renamed, so a
+    killed run leaves no half-written file."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(fields or rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
+
+
+PROGRESS_EPISODES = 200   # the progress bar's success rate is over this many latest episodes
 TRAIN_LOG_FIELDS = ("update", "env_steps", "episodes", "return", "success", "episode_length", "policy_loss",
                     "value_loss", "entropy", "approx_kl", "clip_fraction", "wall_s")
+
+
+def read_train_log(path: Path) -> list:
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def plot_learning_curve(rows: list, path: Path, width: int = 640, height: int = 360) -> None:
+    """Success rate and mean episode length against env steps, drawn with OpenCV (no plotting library)."""
+    image = np.full((height, width, 3), 255, np.uint8)
+    x = np.array([float(r["env_steps"]) for r in rows])
+    left, right, top, bottom = 60, width - 60, 30, height - 40
+    cv2.rectangle(image, (left, top), (right, bottom), (0, 0, 0), 1)
+    for name, scale, colour in (("success", 1.0, (40, 160, 40)), ("episode_length", None, (200, 80, 40))):
+        y = np.array([float(r[name]) for r in rows])
+        ok = np.isfinite(y)
+        if ok.sum() < 2:
+            continue
+        top_value = scale or max(1.0, float(np.nanmax(y)))
+        px = left + (x[ok] - x.min()) / max(1.0, x.max() - x.min()) * (right - left)
+        py = bottom - y[ok] / top_value * (bottom - top)
+        cv2.polylines(image, [np.stack([px, py], 1).astype(np.int32)], False, colour, 2, cv2.LINE_AA)
+        label_x = 8 if scale else right + 4
+        cv2.putText(image, f"{top_value:.0f}" if not scale else "1.0", (label_x, top + 10),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, 1, cv2.LINE_AA)
+    cv2.putText(image, "success (green, 0-1) and episode length (blue) per update", (left, 20),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(image, f"env steps: 0 .. {x.max():.0f}", (left, height - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    cv2.imwrite(str(tmp), image)
+    os.replace(tmp, path)
 
 
 def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSettings(), workers: int = 1,
@@ -1615,7 +1830,7 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
     obs_dim = env.observation_space.shape[0]
     torch.manual_seed(seed)
     model = ActorCritic(obs_dim, p)
-    optimizer = torch.optim.Adam(model.parameters(), lr=p.learning_rate, eps=1e-5)
+    optimizer = torch.optim.Adam(model.parameters(), lr=p.learning_rate, eps=p.adam_eps)
     update, env_steps, wall_s, log_rows = 0, 0, 0.0, []
     if init is not None and not resume:
         try:   # a fresh optimizer: Adam's moments belong to the old task
@@ -1663,7 +1878,7 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
             update += 1
             env_steps += steps_per_worker * workers
             wall_s += time.perf_counter() - t0
-            recent = (recent + episodes)[-200:]
+            recent = (recent + episodes)[-PROGRESS_EPISODES:]
             mean = lambda key: float(np.mean([e[key] for e in episodes])) if episodes else float("nan")
             row = dict(update=update, env_steps=env_steps, episodes=len(episodes), success=mean("success"),
                        episode_length=mean("length"), **stats, wall_s=wall_s)
@@ -1687,40 +1902,6 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
     return dict(update=update, env_steps=env_steps, model=model, log=log_rows)
 
 
-def read_train_log(path: Path) -> list:
-    if not path.exists():
-        return []
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
-
-
-def plot_learning_curve(rows: list, path: Path, width: int = 640, height: int = 360) -> None:
-    """Success rate and mean episode length against env steps, drawn with OpenCV (no plotting library)."""
-    image = np.full((height, width, 3), 255, np.uint8)
-    x = np.array([float(r["env_steps"]) for r in rows])
-    left, right, top, bottom = 60, width - 60, 30, height - 40
-    cv2.rectangle(image, (left, top), (right, bottom), (0, 0, 0), 1)
-    for name, scale, colour in (("success", 1.0, (40, 160, 40)), ("episode_length", None, (200, 80, 40))):
-        y = np.array([float(r[name]) for r in rows])
-        ok = np.isfinite(y)
-        if ok.sum() < 2:
-            continue
-        top_value = scale or max(1.0, float(np.nanmax(y)))
-        px = left + (x[ok] - x.min()) / max(1.0, x.max() - x.min()) * (right - left)
-        py = bottom - y[ok] / top_value * (bottom - top)
-        cv2.polylines(image, [np.stack([px, py], 1).astype(np.int32)], False, colour, 2, cv2.LINE_AA)
-        label_x = 8 if scale else right + 4
-        cv2.putText(image, f"{top_value:.0f}" if not scale else "1.0", (label_x, top + 10),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, 1, cv2.LINE_AA)
-    cv2.putText(image, "success (green, 0-1) and episode length (blue) per update", (left, 20),
-                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(image, f"env steps: 0 .. {x.max():.0f}", (left, height - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                (0, 0, 0), 1, cv2.LINE_AA)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    cv2.imwrite(str(tmp), image)
-    os.replace(tmp, path)
-
-
 # ================================================================================================
 # Evaluation (Sec. IV-C): paired episodes, success with a Wilson interval, the Table II layout.
 # ================================================================================================
@@ -1737,29 +1918,13 @@ PAPER_TABLE_II = {   # (agent, task): {scene: (success %, average steps)}, 1000 
     ("i3de", "ip"): {"cubes": (88.0, 26.86), "fixed-primitives": (90.5, 21.22), "variable-primitives": (85.0, 30.08),
                      "random-shapes": (89.5, 20.82), "object-models": (82.1, 29.79)},
 }
+
 PAPER_NO_TARGET = {"a3de": 100.0, "i3de": 96.1}   # % of no-target scenes ended correctly (Sec. V-A)
-
-
-class UsageError(Exception):
-    """Bad input (an unknown agent, a missing or foreign checkpoint): one line, exit status 2."""
-
-
-def read_checkpoint(path: Path) -> dict:
-    """Load an objfind checkpoint with torch.load(weights_only=True), or explain in one line why not."""
-    if not path.is_file():
-        raise UsageError(f"checkpoint {str(path)!r} not found")
-    import torch
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:   # truncated, not a torch file, or unsafe to unpickle
-        raise UsageError(f"{str(path)!r} is not a readable checkpoint ({type(error).__name__})") from None
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != "objfind-ppo":
-        raise UsageError(f"{str(path)!r} is not an objfind checkpoint")
-    return checkpoint
 
 
 BASELINES = {"random": RandomAgent, "scripted": ScriptedAgent, "gnbv": GreedyNextBestView,
              "ges": GridExhaustiveSearch}
+
 LEARNED = ("a3de", "i3de")
 
 
@@ -1786,11 +1951,12 @@ def make_agent(name: str, seed: int, weights: Path | None = None, task: str = "a
 def run_episode(env: ObjectFindingEnv, agent, seed: int) -> dict:
     """One episode on scene `seed`; returns its row of the evaluation CSV."""
     obs, info = env.reset(seed=seed)
-    agent.reset(env)
+    agent.reset(env.agent_view())
     decide_s, done = 0.0, False
     while not done:
+        view = env.agent_view()
         t0 = time.perf_counter()
-        action = agent.act(obs, env)
+        action = agent.act(obs, view)
         decide_s += time.perf_counter() - t0
         obs, reward, done, _, info = env.step(action)
     return dict(seed=seed, target_present=info["target_present"], success=info["success"], steps=info["steps"],
@@ -1810,12 +1976,15 @@ def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list, weights:
         env.close()
 
 
+EVAL_CHUNK = 5   # episodes per job of a worker process: small jobs keep all workers busy to the end
+
+
 def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 0, workers: int = 1,
              progress: bool = True, weights: Path | None = None) -> list:
     """Paired episodes: episode i is scene seed + i for every agent. Rows in seed order."""
     make_agent(agent_name, seed, weights, task)   # fail early, in the parent, on an agent that cannot run
     seeds = list(range(seed, seed + episodes))
-    chunks = [seeds[i:i + 5] for i in range(0, episodes, 5)]
+    chunks = [seeds[i:i + EVAL_CHUNK] for i in range(0, episodes, EVAL_CHUNK)]
     bar = tqdm(total=episodes, desc=f"{agent_name} {task}/{scene}", unit="ep", disable=not progress,
                file=sys.stderr)
     rows = []
@@ -1859,17 +2028,6 @@ def summarise(rows: list) -> dict:
                 decision_ms=float(np.mean([r["decision_ms"] for r in rows])))
 
 
-def write_csv(rows: list, path: Path, fields: tuple | None = None) -> None:
-    """Rows (episodes, or updates of a training log) written to a temporary file and renamed, so a
-    killed run leaves no half-written file."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(fields or rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp, path)
-
-
 def read_csv(path: Path, seeds: list) -> list | None:
     """The rows of an earlier run of exactly these seeds, or None (then the cell is run again)."""
     if not path.is_file():
@@ -1908,11 +2066,12 @@ def table_markdown(cells: dict, episodes: int) -> str:
         lines.append(f"| {agent.upper()} (paper) | " + " | ".join(paper) + " |")
     return "\n".join(lines)
 
+
 # ================================================================================================
-# Pictures of an episode for the demo (outside, wrist camera, volume, state).
+# Demo: pictures of an episode (outside, wrist camera, volume, state) to a PNG and an MP4.
 # ================================================================================================
 
-PANEL = (320, 240)   # width, height of one picture in the demo
+PANEL = OUTSIDE_VIEW   # width, height of one picture in the demo
 
 
 def label(image: np.ndarray, text: str) -> np.ndarray:
@@ -1921,20 +2080,24 @@ def label(image: np.ndarray, text: str) -> np.ndarray:
     return image
 
 
-def wrist_panel(rgb: np.ndarray, detections: np.ndarray) -> np.ndarray:
-    """The wrist camera image, upscaled, with noisy detections above 0.5 painted green."""
+DETECTION_OVERLAY_RGB = (255, 0, 255)   # magenta: no scene object has it (TARGET_RGBA, OTHER_RGBA)
+
+
+def wrist_panel(rgb: np.ndarray, detections: np.ndarray, s: Settings) -> np.ndarray:
+    """The wrist camera image, upscaled, with the noisy detections above the threshold painted magenta."""
     image = cv2.resize(rgb, PANEL, interpolation=cv2.INTER_NEAREST)
-    mask = cv2.resize((detections > 0.5).astype(np.uint8), PANEL, interpolation=cv2.INTER_NEAREST) > 0
-    image[mask] = (0.4 * image[mask] + 0.6 * np.array([60, 255, 60])).astype(np.uint8)
-    return label(image, "wrist camera + detections (green)")
+    confident = (detections > s.detection_threshold).astype(np.uint8)
+    mask = cv2.resize(confident, PANEL, interpolation=cv2.INTER_NEAREST) > 0
+    image[mask] = (0.3 * image[mask] + 0.7 * np.array(DETECTION_OVERLAY_RGB)).astype(np.uint8)
+    return label(image, "wrist camera + detections (magenta)")
 
 
-def volume_panel(volume: TSDFVolume, T_world_tool: np.ndarray) -> np.ndarray:
+def volume_panel(volume: TSDFVolume, T_world_tool: np.ndarray, s: Settings) -> np.ndarray:
     """Top view of the volume: unobserved dark, observed light, occupied shaded by height, detected red."""
     observed = volume.weight.max(axis=2) > 0                               # (nx, ny)
     inside = (volume.weight > 0) & (volume.tsdf < 0)                       # behind a surface: an object
     height = np.where(inside.any(axis=2), inside.shape[2] - np.argmax(inside[:, :, ::-1], axis=2), 0)
-    detected = (volume.detections > 0.5).any(axis=2)
+    detected = (volume.detections > s.detection_threshold).any(axis=2)
     top = np.full(observed.shape + (3,), 45, np.uint8)
     top[observed] = (215, 215, 210)
     occupied = height > 0
@@ -1963,7 +2126,7 @@ def bins_panel(state: np.ndarray) -> np.ndarray:
     names = ("TSDF above", "TSDF below", "detections above", "detections below")
     size = 96
     for m, name in enumerate(names):
-        values = state[17 * m:17 * (m + 1)]
+        values = state[BINS * m:BINS * (m + 1)]
         x0, y0 = 12 + (m % 2) * 156, 30 + (m // 2) * 106
         scale = max(float(np.abs(values).max()), 1e-6)
 
@@ -1983,7 +2146,8 @@ def bins_panel(state: np.ndarray) -> np.ndarray:
                 small = third // 3
                 cell(x0 + third + (2 - d) * small, y0 + third + (2 - c) * small, small, values[8 + 3 * c + d])
         cv2.putText(panel, name, (x0 + 2, y0 - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-    sums = f"tsdf sum {state[68]:.2f}, det sum {state[69]:.2f}, roll {state[70]:.2f}"
+    sums = (f"tsdf sum {state[STATE_TSDF_SUM]:.2f}, det sum {state[STATE_DETECTION_SUM]:.2f}, "
+            f"roll {state[STATE_ROLL]:.2f}")
     return label(panel, f"state bins ({sums})")
 
 
@@ -1991,8 +2155,8 @@ def demo_frame(env: ObjectFindingEnv, state: np.ndarray, text: str) -> np.ndarra
     """The four pictures of one moment side by side, (240, 1280, 3) RGB."""
     views = env.last_views
     return np.concatenate([label(env.outside_view(*PANEL), text),
-                           wrist_panel(views["rgb"], views["detections"]),
-                           volume_panel(env.volume, env.gripper_pose()), bins_panel(state)], axis=1)
+                           wrist_panel(views["rgb"], views["detections"], env.s),
+                           volume_panel(env.volume, env.gripper_pose(), env.s), bins_panel(state)], axis=1)
 
 
 def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
@@ -2001,11 +2165,11 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
     agent = make_agent(agent_name, seed, weights, task)
     env = ObjectFindingEnv(task, scene, seed=seed)
     state, info = env.reset()
-    agent.reset(env)
+    agent.reset(env.agent_view())
     frames = [demo_frame(env, state, f"{task}/{scene} seed {seed}: start")]
     done = False
     while not done:
-        state, reward, done, _, info = env.step(agent.act(state, env))
+        state, reward, done, _, info = env.step(agent.act(state, env.agent_view()))
         status = (f"step {info['steps']}: seen {info['target_seen_fraction']:.2f}, "
                   f"explored {info['explored_fraction']:.2f}")
         if done:
@@ -2025,10 +2189,10 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
     writer.release()
     return png, mp4, info
 
-# ================================================================================================
-# Benchmark: where the time of one env step goes, and env steps/s over worker processes.
-# ================================================================================================
 
+# ================================================================================================
+# Bench: where the time of one env step goes, and env steps/s over worker processes.
+# ================================================================================================
 
 def exploring_actions(rng: np.random.Generator, n: int) -> np.ndarray:
     """Random displacements that never terminate: the bench's workload. (n, 6) float32."""
@@ -2129,10 +2293,10 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
               f"| {2 * workers} lock-step workers |", "|---|---|---|---|---|"]
     return "\n".join(lines + throughput)
 
+
 # ================================================================================================
 # Command line: demo, eval, train and bench. Bad input ends with one line and exit status 2.
 # ================================================================================================
-
 
 class ArgumentParser(argparse.ArgumentParser):
     def error(self, message):
@@ -2180,6 +2344,13 @@ def output_dir(text: str) -> Path:
     return path
 
 
+def output_file(text: str) -> Path:
+    path = Path(text)
+    if not path.parent.is_dir():
+        raise UsageError(f"the folder of the output file {text!r} does not exist")
+    return path
+
+
 def default_task(agent: str | None) -> str:
     """The task an agent was built for when --task is not given: ip for GES and I3DE, ap otherwise."""
     return "ip" if agent in ("ges", "i3de") else "ap"
@@ -2194,13 +2365,6 @@ def cmd_demo(args) -> int:
           f"(target seen {info['target_seen_fraction']:.2f}, explored {info['explored_fraction']:.2f})")
     print(f"wrote {png} and {mp4}")
     return 0
-
-
-def output_file(text: str) -> Path:
-    path = Path(text)
-    if not path.parent.is_dir():
-        raise UsageError(f"the folder of the output file {text!r} does not exist")
-    return path
 
 
 def print_summary(agent: str, task: str, scene: str, summary: dict) -> None:
@@ -2286,6 +2450,7 @@ def cmd_bench(args) -> int:
 
 
 TASK_HELP = "default: ip for ges and i3de, ap otherwise"
+
 WEIGHTS_HELP = "a learned agent's checkpoint (default: weights/AGENT.pt, AGENT-large.pt on ap-large)"
 
 

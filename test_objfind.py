@@ -22,7 +22,7 @@ HERE = Path(__file__).resolve().parent
 
 def small_volume(max_weight=2.0):
     """The `ap` volume: 0.6 m wide, 0.3 m high, 6 mm voxels."""
-    return of.TSDFVolume(0.6, 0.3, 100, 0.04, max_weight)
+    return of.TSDFVolume(dataclasses.replace(of.TASKS["ap"], max_weight=max_weight))
 
 
 def looking_down(height_m, xy=(0.0, 0.0)):
@@ -70,9 +70,9 @@ def zero_crossing(volume):
 
 def test_presets_follow_table_one():
     ap, large, ip = of.TASKS["ap"], of.TASKS["ap-large"], of.TASKS["ip"]
-    assert (ap.min_objects, ap.max_objects, ap.piles, ap.workspace_m, ap.horizon) == (5, 25, 0, 0.6, 130)
+    assert (ap.min_objects, ap.max_objects, ap.num_piles, ap.workspace_m, ap.horizon) == (5, 25, 0, 0.6, 130)
     assert (large.min_objects, large.max_objects, large.workspace_m, large.horizon) == (10, 40, 1.2, 500)
-    assert (ip.min_objects, ip.max_objects, ip.piles, ip.exploration_ratio) == (15, 75, 3, 0.25)
+    assert (ip.min_objects, ip.max_objects, ip.num_piles, ip.exploration_ratio) == (15, 75, 3, 0.25)
     for s in of.TASKS.values():
         paper = (s.no_target_prob, s.trunc_m, s.max_weight, s.max_step_m, s.max_turn_rad, s.detection_reward)
         assert paper == (0.1, 0.04, 2, 0.06, 0.15, 150)
@@ -147,7 +147,7 @@ def test_detection_is_integrated_then_carved_away_in_free_space():
     assert d[k_surface] > 0.8 and d[k_surface + 10] == 0.0     # unsigned distance: peak at the surface
     plane_view(volume, plane_z=0.0, detection=0.0)             # the object is gone: its voxels are free
     assert np.all(column(volume, volume.detections)[k_surface - 2:k_surface + 3] == 0.0)
-    assert volume.perceived_target_fraction(of.TASKS["ap"]) == 0.0
+    assert volume.seen_target_area_m2() == 0.0
 
 
 def test_max_weight_two_forgets_a_removed_object_after_two_views():
@@ -187,7 +187,7 @@ def test_the_71_values_of_a_hand_built_volume():
     put(volume, volume.tsdf, (-0.25, 0.0), 0.25, 1.0)
     put(volume, volume.tsdf, (0.0, 0.0), 0.05, -1.0)     # under the gripper: the inner centre cell
     put(volume, volume.detections, (0.0, 0.1), 0.05, 0.8)   # to the left, below: inner left cell
-    state = of.encode_state(volume, ee, 0.0, 0.3, finger_z, 1.2, detection_scale=4.0)
+    state = of.encode_state(volume, ee, 0.0, 0.3, finger_z, 1.2, 4.0)
     expected = np.zeros(71, np.float32)
     # bins: outer (a, b) with a = 2 front, b = 1 middle -> bin 6; back (0, 1) -> bin 1; inner centre 8 + 4
     tsdf_sum = 1.0 + 2.0 - 1.0
@@ -210,7 +210,7 @@ def test_a_detection_to_the_gripper_left_lands_in_a_left_bin_whatever_the_yaw(ya
         volume.detections[:] = 0
         xy = ee[:2] + of.rotation_z(yaw)[:2, :2] @ [forward, left]
         put(volume, volume.detections, xy, 0.05, 1.0)
-        state = of.encode_state(volume, ee, yaw, 0.0, 0.2)
+        state = of.encode_state(volume, ee, yaw, 0.0, 0.2, 1.2, 1.0)
         assert np.argmax(state[51:68]) == bin_index and state[51 + bin_index] == 1.0
 
 
@@ -382,13 +382,13 @@ def test_every_scene_kind_builds_and_only_the_target_is_red(scene):
 def test_object_counts_and_pile_free_share_follow_table_one():
     env = of.ObjectFindingEnv("ip", "cubes")
     rng = np.random.default_rng(0)
-    draws = [env._object_count(rng) for _ in range(2000)]
+    draws = [of.object_count(env.s, "cubes", rng) for _ in range(2000)]
     env.close()
     counts, piles = np.array([d[0] for d in draws]), np.array([d[1] for d in draws])
     assert counts.min() == 15 and counts.max() == 75
     assert abs((~piles).mean() - 0.25) < 0.03                       # exploration ratio
     dense = of.ObjectFindingEnv("ip", "fixed-primitives")
-    counts = [dense._object_count(rng) for _ in range(500)]
+    counts = [of.object_count(dense.s, "fixed-primitives", rng) for _ in range(500)]
     dense.close()
     assert min(n for n, heaped in counts if heaped) >= 45            # 15-30 per pile, 3 piles
 
@@ -399,7 +399,7 @@ def test_piles_bury_the_target():
         buried = 0
         for seed in range(12):
             env.reset(seed=seed)
-            if not (env.piles and env.target_present):
+            if not (env.heaped and env.target_present):
                 continue
             assert 15 <= len(env.objects) <= 75
             sim = env.sim
@@ -444,7 +444,7 @@ def test_a_push_through_a_hand_built_pile_reveals_the_buried_target():
         for o, (x, y, layer) in zip(env.objects, spots):
             sim.resetBasePositionAndOrientation(o.body, [1.02 * a * x, 1.02 * a * y, a / 2 + 0.001 + layer * (a + 0.002)],
                                                 [0, 0, 0, 1])
-        assert env._settle(480)
+        assert of.settle(sim, env.objects, env.s, env.s.settle_pile_substeps)
         env.volume.reset()
         env.target_seen[:] = False
 
@@ -518,10 +518,10 @@ def test_scripted_agent_finds_a_visible_target(ap_env):
     successes = 0
     for seed in range(5):
         obs, info = ap_env.reset(seed=seed)
-        agent.reset(ap_env)
+        agent.reset(ap_env.agent_view())
         done = False
         while not done:
-            obs, reward, done, _, info = ap_env.step(agent.act(obs, ap_env))
+            obs, reward, done, _, info = ap_env.step(agent.act(obs, ap_env.agent_view()))
         successes += info["success"]
     assert successes >= 3
 
@@ -589,7 +589,7 @@ def test_gnbv_prefers_a_view_of_unobserved_space(ap_env):
     volume.weight[:50] = 1.0                             # the -x half of the workspace is known
     volume.tsdf[:50] = 1.0
     gnbv = of.GreedyNextBestView()
-    gnbv.reset(ap_env)
+    gnbv.reset(ap_env.agent_view())
     T = np.eye(4)
     T[:3, :3] = of.gripper_rotation(0.0, 0.0)
     toward_known, toward_unknown = T.copy(), T.copy()
@@ -605,7 +605,7 @@ def test_ges_grid_spacing_is_one_step_and_covers_the_workspace():
     try:
         env.reset(seed=0)
         ges = of.GridExhaustiveSearch()
-        ges.reset(env)
+        ges.reset(env.agent_view())
         s = env.s
         xs = np.unique(ges.nodes[:, 0])
         assert np.allclose(np.diff(xs), s.max_step_m)
@@ -707,7 +707,7 @@ def test_perceived_share_grows_with_the_faces_seen_and_tracks_the_truth(ap_env):
         axis = R[:, 2]
         ap_env._teleport(pos - axis * dist + s.camera_offset_m * axis, R)   # camera looking at the target
         ap_env._observe()
-        shares.append((ap_env.perceived_target_fraction(), ap_env.target_seen.mean()))
+        shares.append((ap_env.agent_view().perceived_target_share(), ap_env.target_seen.mean()))
     (top, top_truth), (last, last_truth) = shares[0], shares[-1]
     assert last > top + 0.1 and last_truth > top_truth + 0.1          # more faces, more seen, in both
     assert all(0.6 * t < p < t + 0.03 for p, t in shares), shares     # in step, on the safe side
@@ -724,7 +724,7 @@ def test_a_view_from_straight_above_perceives_one_face_of_six(ap_env, height_m, 
     camera_z = pos[2] + ap_env.s.object_size_m / 2 + height_m
     ap_env._teleport(np.r_[pos[:2], camera_z - ap_env.s.camera_offset_m], of.gripper_rotation(0.0, 0.0))
     ap_env._observe()
-    assert low < ap_env.perceived_target_fraction() <= 1 / 6 + 0.005
+    assert low < ap_env.agent_view().perceived_target_share() <= 1 / 6 + 0.005
 
 
 def test_perceived_share_is_conservative_over_random_views(ap_env):
@@ -737,7 +737,7 @@ def test_perceived_share_is_conservative_over_random_views(ap_env):
             ap_env.target_seen[:] = False
             ap_env._observe()
             if info["target_present"] and ap_env.target_seen.mean() > 0.05:
-                perceived.append(ap_env.perceived_target_fraction())
+                perceived.append(ap_env.agent_view().perceived_target_share())
                 truth.append(ap_env.target_seen.mean())
             ap_env.step(np.r_[rng.uniform(-1, 1, 5), -1.0])
     perceived, truth = np.array(perceived), np.array(truth)
@@ -753,7 +753,7 @@ def test_ground_truth_of_a_model_uses_only_its_surface_seen_from_outside():
     shares = {}
     for name, scale in of.OBJECT_MODELS:
         path = os.path.join(data, name)
-        points, normals, area = of.exterior_surface(path, scale, candidates=2000)
+        points, normals, area = of.exterior_surface(path, scale, of.TASKS["ap"].seen_min_cos, candidates=2000)
         shares[name] = len(points) / 2000
         assert np.allclose(np.linalg.norm(normals, axis=1), 1.0) and area > 0
     assert shares["teddy_vhacd.urdf"] < 0.9          # its convex pieces overlap: buried faces dropped
@@ -766,7 +766,7 @@ def test_a_mug_shows_its_inside():
     import os
     path = os.path.join(of.pybullet_data.getDataPath(), "objects/mug.urdf")
     vertices, faces = of.urdf_mesh(path)
-    points, normals, _ = of.exterior_surface(path, 1.0, candidates=2000)
+    points, normals, _ = of.exterior_surface(path, 1.0, of.TASKS["ap"].seen_min_cos, candidates=2000)
     to_axis = points.mean(0)[:2] - points[:, :2]
     facing_axis = np.sum(normals[:, :2] * to_axis, axis=1) > 0.5 * np.linalg.norm(to_axis, axis=1)
     assert facing_axis.mean() > 0.1
@@ -908,7 +908,7 @@ def test_the_shipped_weights_load_and_act(name, task):
     agent = of.load_agent(Path(of.__file__).parent / "weights" / name)
     env = of.ObjectFindingEnv(task, "cubes", seed=3)
     obs, _ = env.reset()
-    action = agent.act(obs, env)
+    action = agent.act(obs, env.agent_view())
     assert action.shape == (6,) and np.all(np.abs(action) <= 1) and abs(action[5]) == 1.0
     assert checkpoint["model"]["obs_count"].item() > 0          # trained: the normaliser has seen batches
     env.close()
