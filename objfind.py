@@ -66,7 +66,17 @@ def _import_quietly(name: str):
 
 
 pb = _import_quietly("pybullet")
-from pybullet_utils.bullet_client import BulletClient   # noqa: E402  one physics client per env
+from pybullet_utils.bullet_client import BulletClient   # noqa: E402
+
+
+class PhysicsClient(BulletClient):
+    """One headless pybullet world: pybullet's BulletClient, which passes its client id to every call
+    (`sim.stepSimulation()`) and disconnects when garbage collected. Connected without an options
+    string, since with one, even empty, pybullet prints "argv[0]=" on every connect."""
+
+    def __init__(self):
+        self._shapes, self._pid = {}, os.getpid()
+        self._client = pb.connect(pb.DIRECT)
 
 
 class UsageError(Exception):
@@ -776,7 +786,7 @@ def exterior_surface(urdf_path: str, scale: float, min_cos: float, candidates: i
     """
     key = (urdf_path, scale, min_cos, candidates)
     if key not in EXTERIOR_CACHE:
-        sim = BulletClient(pb.DIRECT)
+        sim = PhysicsClient()
         try:
             body = sim.loadURDF(urdf_path, globalScaling=scale)
             sim.resetBasePositionAndOrientation(body, [0, 0, 0], [0, 0, 0, 1])   # world = base frame
@@ -899,7 +909,7 @@ def build_workspace(sim, s: Settings) -> tuple[int, int, int]:
         static_box([half, thick, wall_z], [0, sy * (half + thick), wall_z], WALL_RGBA)
     halves, centres = [b[0] for b in GRIPPER_BOXES], [b[1] for b in GRIPPER_BOXES]
     col = sim.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, collisionFramePositions=centres)
-    speck = sim.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=[0, 0, -0.09],
+    speck = sim.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=GRIPPER_BOXES[0][1],
                                  rgbaColor=(0, 0, 0, 0))
     gripper = sim.createMultiBody(s.gripper_mass_kg, col, speck, [0, 0, 1])
     sim.changeDynamics(gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
@@ -1041,6 +1051,7 @@ def build_scene(sim, s: Settings, scene: str, rng: np.random.Generator) -> Scene
 # Simulation III (Sec. III-B.3, III-C): the object finding task as a Gymnasium environment, rewards.
 # ================================================================================================
 
+SWEEP_MARGIN_M = 0.005  # the box swept by one move, grown by this before asking what it touches
 REACH_CHECK_EVERY = 4   # physics steps between checks of the gripper's progress towards an action's pose
 ACTION_MOVES = 5        # dx, dy, dz, roll, yaw; then terminate
 ACTION_SIZE = ACTION_MOVES + 1
@@ -1088,7 +1099,7 @@ class ObjectFindingEnv(gym.Env):
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (STATE_SIZE,), np.float32)
         self.volume = TSDFVolume(s)
         self.K = intrinsics(s)
-        self.sim = BulletClient(pb.DIRECT)
+        self.sim = PhysicsClient()
         self.timings = dict.fromkeys(("physics", "render", "detect", "integrate", "encode"), 0.0)
         self.last_views: dict = {}   # the latest rgb, depth and detections, for demos and tests
 
@@ -1152,8 +1163,8 @@ class ObjectFindingEnv(gym.Env):
         goal, R_goal = T_goal[:3, 3], T_goal[:3, :3]
         lo, hi = sim.getAABB(self.gripper)
         corners = GRIPPER_CORNERS @ R_goal.T + goal
-        lo = np.minimum(lo, corners.min(0)) - 0.005
-        hi = np.maximum(hi, corners.max(0)) + 0.005
+        lo = np.minimum(lo, corners.min(0)) - SWEEP_MARGIN_M
+        hi = np.maximum(hi, corners.max(0)) + SWEEP_MARGIN_M
         near = sim.getOverlappingObjects(lo.tolist(), hi.tolist()) or []
         if not self.disturbed and all(body in (self.gripper, self.ghost) for body, _ in near):
             self._teleport(goal, R_goal)
@@ -1730,7 +1741,7 @@ def start_rollout_worker(make_env, obs_dim: int, p: PPOSettings) -> None:
 
 def run_rollout_worker(weights: dict, steps: int, env_seed: int, sample_seed: int) -> dict:
     """One worker's share of a batch, with the current weights. Each worker steps its own env at its
-    own pace: lock-step workers would all wait for whichever is resetting a scene (see Speed)."""
+    own pace: lock-step workers would all wait for whichever is resetting a scene (a pile: 80 ms)."""
     model = ROLLOUT_WORKER["model"]
     model.load_state_dict(weights)
     return collect_rollout(ROLLOUT_WORKER["env"], model, steps, env_seed, sample_seed)
@@ -1785,30 +1796,66 @@ def read_train_log(path: Path) -> list:
         return list(csv.DictReader(f))
 
 
-def plot_learning_curve(rows: list, path: Path, width: int = 640, height: int = 360) -> None:
-    """Success rate and mean episode length against env steps, drawn with OpenCV (no plotting library)."""
+CURVE_SIZE = (720, 480)     # width, height of a learning-curve PNG
+CURVE_MARGINS = (70, 20, 34, 50)   # left, right, top, bottom: room for the tick labels and axis titles
+
+
+def nice_ticks(top: float, count: int = 5) -> np.ndarray:
+    """Round tick values from 0 to the first at or above `top`: steps of 1, 2 or 5 times a power of ten."""
+    raw = max(top, 1e-9) / count
+    step = min((m * 10 ** np.floor(np.log10(raw)) for m in (1, 2, 5, 10)), key=lambda v: abs(v - raw))
+    return np.arange(np.ceil(top / step - 1e-9) + 1) * step
+
+
+def steps_label(value: float) -> str:
+    return f"{value / 1e6:g}M" if value >= 1e6 else f"{value / 1e3:g}k" if value >= 1e3 else f"{value:g}"
+
+
+def plot_learning_curve(rows: list, path: Path) -> None:
+    """Success % and mean episode length of the sampled policy per update against env steps: two panels
+    with ticks and labelled axes, drawn with OpenCV (no plotting library)."""
+    width, height = CURVE_SIZE
+    left, right, top, bottom = CURVE_MARGINS
     image = np.full((height, width, 3), 255, np.uint8)
+    font, black, grey = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0), (215, 215, 215)
     x = np.array([float(r["env_steps"]) for r in rows])
-    left, right, top, bottom = 60, width - 60, 30, height - 40
-    cv2.rectangle(image, (left, top), (right, bottom), (0, 0, 0), 1)
-    for name, scale, colour in (("success", 1.0, (40, 160, 40)), ("episode_length", None, (200, 80, 40))):
-        y = np.array([float(r[name]) for r in rows])
+    x_max = float(x.max()) if len(x) else 1.0
+    x_ticks = nice_ticks(x_max)
+    x_right = max(x_max, float(x_ticks[-1]))
+    plot_w = width - left - right
+    panel_h = (height - top - bottom - 30) // 2
+    to_px = lambda v: left + v / x_right * plot_w
+    panels = (("success", "success (%) of the sampled policy, one point per PPO update", 100.0, (40, 150, 40)),
+              ("episode_length", "mean episode length (steps)", None, (40, 80, 200)))   # BGR
+    for p, (key, title, scale, colour) in enumerate(panels):
+        y0 = top + p * (panel_h + 30)                     # the panel's top edge
+        y = np.array([float(r[key]) for r in rows]) * (scale or 1.0)
         ok = np.isfinite(y)
-        if ok.sum() < 2:
-            continue
-        top_value = scale or max(1.0, float(np.nanmax(y)))
-        px = left + (x[ok] - x.min()) / max(1.0, x.max() - x.min()) * (right - left)
-        py = bottom - y[ok] / top_value * (bottom - top)
-        cv2.polylines(image, [np.stack([px, py], 1).astype(np.int32)], False, colour, 2, cv2.LINE_AA)
-        label_x = 8 if scale else right + 4
-        cv2.putText(image, f"{top_value:.0f}" if not scale else "1.0", (label_x, top + 10),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, 1, cv2.LINE_AA)
-    cv2.putText(image, "success (green, 0-1) and episode length (blue) per update", (left, 20),
-                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(image, f"env steps: 0 .. {x.max():.0f}", (left, height - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                (0, 0, 0), 1, cv2.LINE_AA)
+        y_ticks = nice_ticks(100.0 if scale else max(1.0, float(np.nanmax(y)) if ok.any() else 1.0), 4)
+        y_top = max(float(y_ticks[-1]), 1e-9)
+        to_py = lambda v: y0 + panel_h - v / y_top * panel_h
+        for t in y_ticks:                                  # horizontal grid lines and y tick labels
+            py = int(round(to_py(t)))
+            cv2.line(image, (left, py), (left + plot_w, py), grey, 1)
+            text = f"{t:g}"
+            (tw, th), _ = cv2.getTextSize(text, font, 0.4, 1)
+            cv2.putText(image, text, (left - 6 - tw, py + th // 2), font, 0.4, black, 1, cv2.LINE_AA)
+        for t in x_ticks:
+            px = int(round(to_px(t)))
+            cv2.line(image, (px, y0 + panel_h), (px, y0 + panel_h + 4), black, 1)
+            if p == 1:                                     # x tick labels under the lower panel only
+                text = steps_label(t)
+                (tw, th), _ = cv2.getTextSize(text, font, 0.4, 1)
+                cv2.putText(image, text, (px - tw // 2, y0 + panel_h + 8 + th), font, 0.4, black, 1, cv2.LINE_AA)
+        cv2.rectangle(image, (left, y0), (left + plot_w, y0 + panel_h), black, 1)
+        if ok.sum() >= 2:
+            points = np.stack([to_px(x[ok]), to_py(y[ok])], 1).astype(np.int32)
+            cv2.polylines(image, [points], False, colour, 2, cv2.LINE_AA)
+        cv2.putText(image, title, (left, y0 - 9), font, 0.5, colour, 1, cv2.LINE_AA)
+    cv2.putText(image, "env steps", (left + plot_w // 2 - 35, height - 10), font, 0.5, black, 1, cv2.LINE_AA)
     tmp = path.with_name(path.stem + ".tmp.png")
-    cv2.imwrite(str(tmp), image)
+    if not cv2.imwrite(str(tmp), image):
+        raise UsageError(f"could not write {str(tmp)!r}")
     os.replace(tmp, path)
 
 
@@ -1818,7 +1865,7 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
     """PPO on `workers` processes, each with its own make_env(); writes out_dir/checkpoint.pt every
     few updates and out_dir/log.csv every update. With resume, continues from the checkpoint exactly.
     `init`, a checkpoint, warm-starts a new run from its policy, critic and observation statistics;
-    with fresh_terminate, the terminate head starts afresh (see README: I3DE)."""
+    with fresh_terminate, the terminate head starts afresh (how I3DE starts from A3DE: weights/README.md)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
     if resume and not ckpt_path.exists():
@@ -2113,7 +2160,7 @@ def volume_panel(volume: TSDFVolume, T_world_tool: np.ndarray, s: Settings) -> n
                         int(side - (xy[1] - volume.origin[1]) / volume.voxel_m * side / n))
     ee = T_world_tool[:3, 3]
     yaw, _ = yaw_roll_of(T_world_tool[:3, :3])
-    tip = ee[:2] + 0.06 * np.array([np.cos(yaw), np.sin(yaw)])
+    tip = ee[:2] + s.max_step_m * np.array([np.cos(yaw), np.sin(yaw)])   # one max step ahead
     cv2.arrowedLine(image, to_px(ee), to_px(tip), (20, 120, 255), 2, tipLength=0.4)
     panel = np.full((PANEL[1], PANEL[0], 3), 255, np.uint8)
     panel[:, (PANEL[0] - side) // 2:(PANEL[0] - side) // 2 + side] = image
@@ -2197,7 +2244,7 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
 def exploring_actions(rng: np.random.Generator, n: int) -> np.ndarray:
     """Random displacements that never terminate: the bench's workload. (n, 6) float32."""
     actions = rng.uniform(-1, 1, (n, 6)).astype(np.float32)
-    actions[:, 5] = -1.0
+    actions[:, ACTION_MOVES] = -1.0
     return actions
 
 
@@ -2449,31 +2496,38 @@ def cmd_bench(args) -> int:
     return 0
 
 
-TASK_HELP = "default: ip for ges and i3de, ap otherwise"
+TASK_HELP = "Table I preset: ap (active), ap-large, ip (interactive, piles); default ip for ges and i3de, ap otherwise"
+AGENT_HELP = ("random, scripted, the baselines gnbv and ges, or the learned a3de and i3de (shipped weights)")
+SCENE_HELP = "scene kind (default cubes)"
 
 WEIGHTS_HELP = "a learned agent's checkpoint (default: weights/AGENT.pt, AGENT-large.pt on ap-large)"
 
 
 def build_parser() -> ArgumentParser:
-    parser = ArgumentParser(prog="objfind.py", description=__doc__.split("\n\n")[0])
+    parser = ArgumentParser(prog="objfind.py", description=__doc__.split("\n\n")[0],
+                            epilog="python objfind.py COMMAND --help lists a command's flags.")
     commands = parser.add_subparsers(dest="command", required=True)
     demo = commands.add_parser("demo", help="one episode to a PNG contact sheet and an MP4")
-    demo.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default="a3de")
+    demo.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default="a3de", help=AGENT_HELP)
     demo.add_argument("--task", choices=list(TASKS), help=TASK_HELP)
-    demo.add_argument("--scene", choices=SCENES, default="cubes")
-    demo.add_argument("--seed", type=count_arg, default=0)
-    demo.add_argument("--out", default="out", help="output folder (its parent must exist)")
+    demo.add_argument("--scene", choices=SCENES, default="cubes", help=SCENE_HELP)
+    demo.add_argument("--seed", type=count_arg, default=0, help="the scene's seed (default 0)")
+    demo.add_argument("--out", default="out", help="output folder for demo-TASK-SCENE-AGENT.png and .mp4 "
+                      "(default out; its parent must exist)")
     demo.add_argument("--weights", help=WEIGHTS_HELP)
     demo.set_defaults(func=cmd_demo)
     training = commands.add_parser("train", help="train A3DE (ap) or I3DE (ip) with PPO; resumable")
-    training.add_argument("--task", choices=list(TASKS), default="ap")
-    training.add_argument("--scene", choices=SCENES, default="cubes")
+    training.add_argument("--task", choices=list(TASKS), default="ap", help="ap trains A3DE, ip trains I3DE")
+    training.add_argument("--scene", choices=SCENES, default="cubes", help="scene kind to train on (default cubes)")
     training.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1,
                           help="env worker processes (default all cores)")
-    training.add_argument("--steps", type=positive_arg, default=2_000_000, help="env steps in all")
-    training.add_argument("--seed", type=count_arg, default=0)
+    training.add_argument("--steps", type=positive_arg, default=2_000_000,
+                          help="env steps in all, counting those of a resumed run (default 2000000)")
+    training.add_argument("--seed", type=count_arg, default=0,
+                          help="seeds the network, and each update's env resets and samples (default 0)")
     training.add_argument("--out", help="run folder: checkpoint.pt, log.csv, curve.png (default runs/TASK-SCENE)")
-    training.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    training.add_argument("--resume", action="store_true",
+                          help="continue the run in --out from its checkpoint, with the settings it started with")
     training.add_argument("--set", type=ppo_setting_arg, action="append", metavar="NAME=VALUE",
                           help="change a PPOSettings field for a new run (repeatable), e.g. entropy_coef=0.003")
     training.add_argument("--init", help="warm-start a new run from this checkpoint's policy (I3DE from A3DE)")
@@ -2481,13 +2535,17 @@ def build_parser() -> ArgumentParser:
                           help="with --init: keep the moves and the critic, learn when to terminate afresh")
     training.set_defaults(func=cmd_train)
     evaluation = commands.add_parser("eval", help="paired evaluation episodes, or the whole Table II")
-    evaluation.add_argument("--agent", choices=list(BASELINES) + list(LEARNED))
-    evaluation.add_argument("--table", action="store_true", help="every cell of Table II beside the paper")
+    evaluation.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), help=AGENT_HELP)
+    evaluation.add_argument("--table", action="store_true",
+                            help="every cell of Table II beside the paper: one CSV per cell in --out and "
+                                 "table2.md; a cell whose CSV holds these seeds is read back, not run again")
     evaluation.add_argument("--task", choices=list(TASKS), help=TASK_HELP)
-    evaluation.add_argument("--scene", choices=SCENES, default="cubes")
-    evaluation.add_argument("--episodes", type=positive_arg, default=100)
-    evaluation.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1)
-    evaluation.add_argument("--seed", type=count_arg, default=0, help="episode i uses scene seed + i")
+    evaluation.add_argument("--scene", choices=SCENES, default="cubes", help=SCENE_HELP)
+    evaluation.add_argument("--episodes", type=positive_arg, default=100, help="episodes per cell (default 100)")
+    evaluation.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1,
+                            help="worker processes (default all cores); results do not depend on it")
+    evaluation.add_argument("--seed", type=count_arg, default=0,
+                            help="episode i uses scene seed + i for every agent, so agents meet the same scenes")
     evaluation.add_argument("--from-csv", action="store_true",
                             help="with --table: only read cells already run, print '-' for the others")
     evaluation.add_argument("--weights", help=WEIGHTS_HELP)
@@ -2495,7 +2553,8 @@ def build_parser() -> ArgumentParser:
     evaluation.set_defaults(func=cmd_eval)
     bench = commands.add_parser("bench", help="per-stage step time and env steps/s")
     bench.add_argument("--steps", type=positive_arg, default=300, help="steps per measurement")
-    bench.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1)
+    bench.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1,
+                       help="processes for the throughput rows (default all cores)")
     bench.add_argument("--repeats", type=positive_arg, default=3, help="report the best of this many runs")
     bench.set_defaults(func=cmd_bench)
     return parser

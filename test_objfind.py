@@ -250,6 +250,53 @@ def test_env_follows_the_gymnasium_api(ap_env):
     assert ap_env.observation_space.shape == (71,)
 
 
+@pytest.mark.parametrize("gym_id, task", sorted(of.GYM_IDS.items()))
+def test_registered_ids_make_the_same_env_as_the_constructor(gym_id, task):
+    from gymnasium.utils.env_checker import check_env
+    made = gym.make(gym_id, scene="fixed-primitives")
+    direct = of.ObjectFindingEnv(task, "fixed-primitives")
+    try:
+        assert made.unwrapped.task == task and made.unwrapped.scene == "fixed-primitives"
+        obs_made, _ = made.reset(seed=11)
+        obs_direct, _ = direct.reset(seed=11)
+        assert np.array_equal(obs_made, obs_direct)
+        action = np.array([0.5, -0.5, 1.0, 0.2, 0.3, -1.0], np.float32)
+        assert np.array_equal(made.step(action)[0], direct.step(action)[0])
+        check_env(made.unwrapped, skip_render_check=True)
+    finally:
+        made.close(), direct.close()
+
+
+def scene_positions(s, seed=4):
+    """(n, 3) resting positions of a cubes scene drawn with settings `s` in a fresh world."""
+    sim = of.PhysicsClient()
+    try:
+        sim.setGravity(0, 0, -9.81)
+        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / s.physics_hz, numSolverIterations=s.solver_iterations)
+        of.build_workspace(sim, s)
+        scene = of.build_scene(sim, s, "cubes", np.random.default_rng(seed))
+        assert scene.heaped == (s.num_piles > 0) and len(scene.objects) >= 10
+        return np.array([sim.getBasePositionAndOrientation(o.body)[0] for o in scene.objects])
+    finally:
+        sim.disconnect()
+
+
+def test_every_scene_setting_changes_the_scene():
+    """A student who edits a Settings field sees the scene change: no hidden copy of it in the builder."""
+    piles = dict(num_piles=2, pile_margin_m=0.2, pile_layers=5, pile_spacing_ratio=1.2, pile_layer_cost=2.0,
+                 pile_spot_noise=0.5, pile_jitter_ratio=0.3, pile_layer_gap_m=0.03, drop_gap_m=0.02,
+                 settle_pile_substeps=16, settle_speed=0.5, object_size_m=0.05, object_mass_kg=0.3,
+                 object_friction=0.2, wall_height_m=0.3)
+    scattered = dict(scatter_gap_m=0.05, settle_scatter_substeps=4, drop_gap_m=0.02, object_size_m=0.05)
+    unchanged = []
+    for s, changes in ((of.TASKS["ip"], piles), (of.TASKS["ap"], scattered)):
+        base = scene_positions(s)
+        assert np.array_equal(base, scene_positions(s))          # the same settings: the same scene
+        unchanged += [name for name, value in changes.items()
+                      if np.array_equal(base, scene_positions(dataclasses.replace(s, **{name: value})))]
+    assert not unchanged
+
+
 def test_same_seed_same_scene_and_state_different_seed_different(ap_env):
     def snapshot(seed):
         obs, info = ap_env.reset(seed=seed)
@@ -852,6 +899,23 @@ def test_a_resumed_run_repeats_the_next_update_exactly(tmp_path):
         assert torch.equal(a, b), name
     same = lambda row: {k: v for k, v in row.items() if k != "wall_s"}
     assert same(straight["log"][-1]) == same(resumed["log"][-1])
+
+
+def test_the_learning_curve_has_labelled_ticks_on_both_axes(tmp_path):
+    rows = [dict(env_steps=5000 * u, success=min(1.0, 0.3 + 0.01 * u), episode_length=40 - 0.2 * u)
+            for u in range(1, 121)]
+    path = tmp_path / "curve.png"
+    of.plot_learning_curve(rows, path)
+    image = cv2.imread(str(path))
+    assert image.shape[:2] == of.CURVE_SIZE[::-1] and not (tmp_path / "curve.tmp.png").exists()
+    ink = image.min(axis=2) < 128                                       # dark pixels: text and lines
+    width, height = of.CURVE_SIZE
+    left, right, top, bottom = of.CURVE_MARGINS
+    assert ink[top:height - bottom, :left - 8].sum(axis=1).astype(bool).sum() > 40   # y tick labels, both panels
+    under_axis = ink[height - bottom + 8:height - bottom + 22, left - 20:width - right + 20]
+    columns = np.flatnonzero(under_axis.any(axis=0))
+    groups = 1 + np.count_nonzero(np.diff(columns) > 8)                # separate x tick labels
+    assert groups >= 4
 
 
 def test_a_killed_checkpoint_write_leaves_the_last_checkpoint_readable(tmp_path):
