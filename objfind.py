@@ -1591,7 +1591,7 @@ class ActorCritic(nn.Module):
 
     @torch.no_grad()
     def update_obs_stats(self, obs: torch.Tensor) -> None:
-        """Merge a batch's mean and variance into the running ones (Chan et al.'s parallel formula)."""
+        """Merge a batch's mean and variance into the running ones (the parallel formula of Chan, Golub and LeVeque 1979)."""
         n, mean, var = len(obs), obs.mean(0), obs.var(0, unbiased=False)
         total = self.obs_count + n
         delta = mean - self.obs_mean
@@ -2051,7 +2051,8 @@ def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95 % Wilson score interval of a success rate: sound near 0 % and 100 %, unlike mean +- 1.96 sd."""
+    """95 % Wilson score interval of a success rate (Wilson 1927): sound near 0 % and 100 %, unlike
+    the normal approximation mean +- 1.96 sd."""
     if n == 0:
         return 0.0, 0.0
     p = successes / n
