@@ -30,11 +30,14 @@ Read top to bottom, in the order data flows:
 from __future__ import annotations
 
 import argparse
+import copy
 import csv
 import functools
 import os
 import re
+import signal
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -219,6 +222,19 @@ TASKS = {
 SCENES = ("cubes", "fixed-primitives", "variable-primitives", "random-shapes", "object-models")
 
 
+PPO_VALID = {   # what each PPOSettings value must be; checked when settings are made, before any work
+    "hidden": (lambda v: v >= 1, "at least 1"), "batch_steps": (lambda v: v >= 1, "at least 1"),
+    "minibatch": (lambda v: v >= 1, "at least 1"), "gamma": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "entropy_coef": (lambda v: v >= 0, "at least 0"), "gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "clip": (lambda v: v > 0, "above 0"), "epochs": (lambda v: v >= 1, "at least 1"),
+    "learning_rate": (lambda v: v > 0, "above 0"), "value_coef": (lambda v: v >= 0, "at least 0"),
+    "max_grad_norm": (lambda v: v > 0, "above 0"), "reward_scale": (lambda v: v > 0, "above 0"),
+    "init_log_std": (lambda v: True, "finite"), "init_terminate_prob": (lambda v: 0 < v < 1, "in (0, 1)"),
+    "adam_eps": (lambda v: v > 0, "above 0"), "obs_clip": (lambda v: v > 0, "above 0"),
+    "checkpoint_every": (lambda v: v >= 1, "at least 1"),
+}
+
+
 @dataclass(frozen=True)
 class PPOSettings:
     """PPO for A3DE and I3DE (Sec. III-B.4, IV-A); the paper's name beside each of its constants."""
@@ -241,6 +257,23 @@ class PPOSettings:
     adam_eps: float = 1e-5             # Adam's epsilon, as in OpenAI Baselines' PPO2
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
+
+    def __post_init__(self):
+        for name, (ok, meaning) in PPO_VALID.items():
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and ok(value)):
+                raise ValueError(f"{name}={value!r}: it must be {meaning}")
+
+
+def ppo_settings(values: dict) -> PPOSettings:
+    """PPOSettings from NAME: VALUE pairs (a checkpoint's, or --set), or a one-line UsageError."""
+    unknown = sorted(set(values) - set(PPO_VALID))
+    if unknown:
+        raise UsageError(f"unknown PPO setting {unknown[0]!r}; the settings are {', '.join(PPO_VALID)}")
+    try:
+        return PPOSettings(**values)
+    except ValueError as error:
+        raise UsageError(f"PPO setting {error}") from None
 
 
 # ================================================================================================
@@ -1055,6 +1088,7 @@ SWEEP_MARGIN_M = 0.005  # the box swept by one move, grown by this before asking
 REACH_CHECK_EVERY = 4   # physics steps between checks of the gripper's progress towards an action's pose
 ACTION_MOVES = 5        # dx, dy, dz, roll, yaw; then terminate
 ACTION_SIZE = ACTION_MOVES + 1
+ACTION_NAMES = ("dx", "dy", "dz", "roll", "yaw", "terminate")
 OUTSIDE_VIEW = (320, 240)   # width, height of render() and of each demo panel
 
 
@@ -1255,13 +1289,32 @@ class ObjectFindingEnv(gym.Env):
         self._build_scene(rng)
         self._place_gripper(rng)
         self.volume.reset()
-        self.steps = 0
+        self.steps, self.episode_over = 0, False
         self._observe()
         return self._state(), self._info()
 
+    def checked_action(self, action) -> np.ndarray:
+        """The action as (6,) float64 clipped to the Box, or a ValueError naming what is wrong with it;
+        nothing of the env changes before the action passed, so the next good action works."""
+        try:
+            action = np.asarray(action, np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"an action must be {ACTION_SIZE} numbers, not {action!r}") from None
+        if action.shape != (ACTION_SIZE,):
+            raise ValueError(f"an action has shape ({ACTION_SIZE},) ({', '.join(ACTION_NAMES)}), "
+                             f"not {action.shape}")
+        bad = np.flatnonzero(~np.isfinite(action))
+        if len(bad):
+            raise ValueError(f"action component {ACTION_NAMES[bad[0]]} (index {bad[0]}) is {action[bad[0]]}: "
+                             "every component must be finite")
+        return np.clip(action, -1.0, 1.0)
+
     def step(self, action):
         s = self.s
-        action = np.clip(np.asarray(action, np.float64).reshape(ACTION_SIZE), -1.0, 1.0)
+        if getattr(self, "episode_over", True):
+            raise RuntimeError("step() needs reset() first: " + ("the episode has ended" if hasattr(self, "steps")
+                                                                 else "no episode has started"))
+        action = self.checked_action(action)
         self.steps += 1
         reward = -s.time_penalty
         if action[ACTION_MOVES] > 0:   # terminate: claim the target was found, or that there is none
@@ -1270,6 +1323,7 @@ class ObjectFindingEnv(gym.Env):
             reward += s.detection_reward if success else -s.detection_reward
             info.update(success=success, terminated_by_agent=True)
             self.timings.update(physics=0.0, render=0.0, detect=0.0, integrate=0.0, encode=0.0)
+            self.episode_over = True
             return self._state(), reward, True, False, info
         t0 = time.perf_counter()
         self._move_gripper(action)
@@ -1283,6 +1337,7 @@ class ObjectFindingEnv(gym.Env):
         if self.steps >= s.horizon:
             reward -= s.detection_reward
             info.update(success=False, terminated_by_agent=False)
+            self.episode_over = True
             return state, reward, True, False, info
         return state, reward, False, False, info
 
@@ -1591,7 +1646,8 @@ class ActorCritic(nn.Module):
 
     @torch.no_grad()
     def update_obs_stats(self, obs: torch.Tensor) -> None:
-        """Merge a batch's mean and variance into the running ones (the parallel formula of Chan, Golub and LeVeque 1979)."""
+        """Merge a batch's mean and variance into the running ones (the parallel formula of Chan,
+        Golub and LeVeque 1979)."""
         n, mean, var = len(obs), obs.mean(0), obs.var(0, unbiased=False)
         total = self.obs_count + n
         delta = mean - self.obs_mean
@@ -1628,7 +1684,7 @@ class PPOAgent:
     """A trained policy as an agent for eval and demo: the Gaussian's mean, terminate when p > 0.5."""
 
     def __init__(self, checkpoint: dict):
-        self.model = ActorCritic(checkpoint["obs_dim"], PPOSettings(**checkpoint["settings"]))
+        self.model = ActorCritic(checkpoint["obs_dim"], ppo_settings(checkpoint["settings"]))
         self.model.load_state_dict(checkpoint["model"])
         self.model.eval()
 
@@ -1731,17 +1787,24 @@ def collect_rollout(env, model: ActorCritic, steps: int, env_seed: int, sample_s
     return dict(batch, last_value=last_value, episodes=episodes)
 
 
+def ignore_sigint() -> None:
+    """In a worker process: Ctrl-C reaches the whole process group, and the parent alone handles it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 ROLLOUT_WORKER: dict = {}   # per worker process: its env and its copy of the policy
 
 
-def start_rollout_worker(make_env, obs_dim: int, p: PPOSettings) -> None:
+def start_rollout_worker(make_env, obs_dim: int, p: PPOSettings, in_pool: bool = False) -> None:
     torch.set_num_threads(1)   # one env and a small MLP per process: threads would only contend
+    if in_pool:
+        ignore_sigint()
     ROLLOUT_WORKER.update(env=make_env(), model=ActorCritic(obs_dim, p))
 
 
 def run_rollout_worker(weights: dict, steps: int, env_seed: int, sample_seed: int) -> dict:
-    """One worker's share of a batch, with the current weights. Each worker steps its own env at its
-    own pace: lock-step workers would all wait for whichever is resetting a scene (a pile: 80 ms)."""
+    """One rollout stream of a batch, with the current weights. Each worker process steps its own env
+    at its own pace: lock-step workers would all wait for whichever is resetting a scene (a pile: 80 ms)."""
     model = ROLLOUT_WORKER["model"]
     model.load_state_dict(weights)
     return collect_rollout(ROLLOUT_WORKER["env"], model, steps, env_seed, sample_seed)
@@ -1763,25 +1826,84 @@ def read_checkpoint(path: Path) -> dict:
         raise UsageError(f"{str(path)!r} is not a readable checkpoint ({type(error).__name__})") from None
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != "objfind-ppo":
         raise UsageError(f"{str(path)!r} is not an objfind checkpoint")
+    missing = [k for k in ("model", "settings", "obs_dim") if k not in checkpoint]
+    if missing:
+        raise UsageError(f"{str(path)!r} is an objfind checkpoint without {', '.join(missing)}")
+    try:
+        p = ppo_settings(checkpoint["settings"])
+        ActorCritic(int(checkpoint["obs_dim"]), p).load_state_dict(checkpoint["model"])
+    except (UsageError, TypeError, ValueError, RuntimeError) as error:
+        reason = str(error).strip().splitlines()[0]
+        raise UsageError(f"{str(path)!r} does not hold this network ({reason[:200]})") from None
+    if not all(torch.isfinite(t).all() for t in checkpoint["model"].values() if t.is_floating_point()):
+        raise UsageError(f"{str(path)!r} holds non-finite weights")
     return checkpoint
 
 
+def writable_folder(path: Path) -> Path:
+    """`path` as an output folder, made if missing (its parent must exist), checked by writing a file
+    into it: permission bits alone do not tell (root ignores them, a read-only filesystem does not)."""
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"{str(path)!r} exists and is not a folder")
+    if not path.parent.is_dir():
+        raise UsageError(f"the parent of the output folder {str(path)!r} does not exist")
+    try:
+        path.mkdir(exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as error:
+        raise UsageError(f"cannot write into {str(path)!r} ({error.strerror or error})") from None
+    return path
+
+
+def writable_file(path: Path) -> Path:
+    """`path` as an output file: not a folder, in a folder that can be written (files are written
+    beside their final name and renamed onto it)."""
+    if path.is_dir():
+        raise UsageError(f"{str(path)!r} is a folder, not a file")
+    if not path.parent.is_dir():
+        raise UsageError(f"the folder of the output file {str(path)!r} does not exist")
+    writable_folder(path.parent)
+    return path
+
+
+def replace_atomically(path: Path, write) -> None:
+    """write(tmp), then rename tmp onto path, so a killed run never leaves a half-written file. The
+    temporary name keeps the suffix (OpenCV picks the format by it). A failed write is one UsageError
+    line, and its temporary file is removed."""
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except (OSError, RuntimeError) as error:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise UsageError(f"could not write {str(path)!r} ({reason})") from None
+
+
 def save_checkpoint(path: Path, checkpoint: dict) -> None:
-    """torch.save to a temporary file, then rename: a killed run never leaves a half-written checkpoint."""
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(checkpoint, tmp)
-    os.replace(tmp, path)
+    replace_atomically(path, lambda tmp: torch.save(checkpoint, tmp))
 
 
 def write_csv(rows: list, path: Path, fields: tuple | None = None) -> None:
-    """Rows (episodes, or updates of a training log) written to a temporary file and renamed, so a
-    killed run leaves no half-written file."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(fields or rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp, path)
+    """Rows (episodes, or updates of a training log) with a header, replaced atomically."""
+    def write(tmp):
+        with open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(fields or rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    replace_atomically(path, write)
+
+
+def write_image(path: Path, rgb: np.ndarray) -> None:
+    """An (H, W, 3) RGB image to a PNG, replaced atomically; cv2.imwrite's False becomes an error."""
+    def write(tmp):
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+            raise OSError("OpenCV could not write the image")
+    replace_atomically(path, write)
 
 
 PROGRESS_EPISODES = 200   # the progress bar's success rate is over this many latest episodes
@@ -1853,26 +1975,39 @@ def plot_learning_curve(rows: list, path: Path) -> None:
             cv2.polylines(image, [points], False, colour, 2, cv2.LINE_AA)
         cv2.putText(image, title, (left, y0 - 9), font, 0.5, colour, 1, cv2.LINE_AA)
     cv2.putText(image, "env steps", (left + plot_w // 2 - 35, height - 10), font, 0.5, black, 1, cv2.LINE_AA)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    if not cv2.imwrite(str(tmp), image):
-        raise UsageError(f"could not write {str(tmp)!r}")
-    os.replace(tmp, path)
+    write_image(path, image[:, :, ::-1])
+
+
+class TrainingInterrupted(Exception):
+    """Ctrl-C or SIGTERM stopped `train`; the last finished update is in the checkpoint."""
+
+    def __init__(self, update: int, env_steps: int, path: Path):
+        super().__init__(f"update {update} ({env_steps} env steps)")
+        self.update, self.env_steps, self.path = update, env_steps, path
+
+
+def raise_keyboard_interrupt(signum, frame):
+    raise KeyboardInterrupt   # SIGTERM (a scheduler's stop) ends training as Ctrl-C does
 
 
 def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSettings(), workers: int = 1,
           seed: int = 0, resume: bool = False, progress: bool = True, meta: dict | None = None,
           init: dict | None = None, fresh_terminate: bool = False) -> dict:
-    """PPO on `workers` processes, each with its own make_env(); writes out_dir/checkpoint.pt every
-    few updates and out_dir/log.csv every update. With resume, continues from the checkpoint exactly.
+    """PPO with `workers` processes, each with its own make_env(); writes out_dir/log.csv every update
+    and out_dir/checkpoint.pt every few updates, at the last one and when interrupted.
+
+    A batch is collected in rollout streams, as many as the run's first `workers`, each from a reset
+    and sampling seeded by (seed, update, stream): an update is a function of the weights, the
+    optimizer and its index, so `resume` repeats the uninterrupted run exactly, with any worker count.
     `init`, a checkpoint, warm-starts a new run from its policy, critic and observation statistics;
     with fresh_terminate, the terminate head starts afresh (how I3DE starts from A3DE: weights/README.md)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
+    writable_folder(out_dir)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
     if resume and not ckpt_path.exists():
         raise UsageError(f"--resume: no checkpoint in {str(out_dir)!r}")
     checkpoint = read_checkpoint(ckpt_path) if resume else None
     if checkpoint is not None:
-        p = PPOSettings(**checkpoint["settings"])   # a run keeps the settings it started with
+        p = ppo_settings(checkpoint["settings"])   # a run keeps the settings it started with
     env = make_env()   # the single worker's env, or only asked for the observation size
     obs_dim = env.observation_space.shape[0]
     torch.manual_seed(seed)
@@ -1886,35 +2021,57 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
             raise UsageError("--init: the checkpoint's network does not match these settings") from None
         if fresh_terminate:
             model.reset_terminate(p.init_terminate_prob)
+    streams = workers
     if checkpoint is not None:
+        missing = [k for k in ("optimizer", "update", "env_steps", "wall_s", "seed") if k not in checkpoint]
+        if missing:
+            raise UsageError(f"--resume: the checkpoint has no {', '.join(missing)}: it holds weights, not a run")
+        if checkpoint["obs_dim"] != obs_dim:
+            raise UsageError(f"--resume: the checkpoint is for a {checkpoint['obs_dim']}-value state, not {obs_dim}")
         model.load_state_dict(checkpoint["model"])
         optimizer.load_state_dict(checkpoint["optimizer"])
         update, env_steps, wall_s, seed = (checkpoint[k] for k in ("update", "env_steps", "wall_s", "seed"))
+        streams = checkpoint.get("rollout_streams", workers)   # written by every run since streams exist
         log_rows = [r for r in read_train_log(log_path) if int(r["update"]) <= update]   # drop the lost tail
         meta = {**({"init": checkpoint["init"]} if "init" in checkpoint else {}), **(meta or {})}
-    steps_per_worker = max(1, p.batch_steps // workers)
-    if workers > 1:
+    steps_per_stream = max(1, p.batch_steps // streams)
+    processes = min(workers, streams)
+    if processes > 1:
         import multiprocessing
         env.close()
-        pool = multiprocessing.get_context("spawn").Pool(workers, start_rollout_worker, (make_env, obs_dim, p))
+        pool = multiprocessing.get_context("spawn").Pool(processes, start_rollout_worker,
+                                                         (make_env, obs_dim, p, True))
     else:
         start_rollout_worker(lambda: env, obs_dim, p)
+
+    def snapshot() -> dict:
+        """The checkpoint of the update just finished (copies: the next update changes the tensors)."""
+        return dict(format="objfind-ppo", model=copy.deepcopy(model.state_dict()),
+                    optimizer=copy.deepcopy(optimizer.state_dict()), update=update, env_steps=env_steps,
+                    wall_s=wall_s, seed=seed, obs_dim=obs_dim, settings=vars(p).copy(), rollout_streams=streams,
+                    **(meta or {}))
+
+    latest, saved_update = None, update
     bar = tqdm(total=total_steps, initial=min(env_steps, total_steps), unit="step", disable=not progress,
                file=sys.stderr, desc="train")
+    import threading
+    handles_sigterm = threading.current_thread() is threading.main_thread()
+    previous_handler = signal.signal(signal.SIGTERM, raise_keyboard_interrupt) if handles_sigterm else None
     recent = []
     try:
         while env_steps < total_steps:
             t0 = time.perf_counter()
-            jobs = [(model.state_dict(), steps_per_worker, derived_seed(seed, update, w, 0),
-                     derived_seed(seed, update, w, 1)) for w in range(workers)]
-            parts = pool.starmap(run_rollout_worker, jobs) if workers > 1 else [run_rollout_worker(*jobs[0])]
+            jobs = [(model.state_dict(), steps_per_stream, derived_seed(seed, update, w, 0),
+                     derived_seed(seed, update, w, 1)) for w in range(streams)]
+            parts = (pool.starmap(run_rollout_worker, jobs) if processes > 1
+                     else [run_rollout_worker(*job) for job in jobs])
             episodes = [e for part in parts for e in part["episodes"]]
-            batch = {k: np.stack([part[k] for part in parts], axis=1)      # (T, W, ...) time-major
+            batch = {k: np.stack([part[k] for part in parts], axis=1)      # (T, streams, ...) time-major
                      for k in ("obs", "raw", "logp", "values", "rewards", "dones")}
             batch["last_value"] = np.array([part["last_value"] for part in parts], np.float32)
             advantages, returns = gae(batch["rewards"] * p.reward_scale, batch["values"], batch["dones"],
                                       batch["last_value"], p.gamma, p.gae_lambda)
-            n = steps_per_worker * workers
+            n = steps_per_stream * streams
             flat = dict(obs=torch.as_tensor(batch["obs"].reshape(n, obs_dim)),
                         raw=torch.as_tensor(batch["raw"].reshape(n, -1)),
                         logp=torch.as_tensor(batch["logp"].reshape(n)),
@@ -1923,8 +2080,9 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
             stats = ppo_update(model, optimizer, flat, p, torch.Generator().manual_seed(derived_seed(seed, update)))
             model.update_obs_stats(flat["obs"])   # after the update, whose ratios need the rollout's scale
             update += 1
-            env_steps += steps_per_worker * workers
+            env_steps += n
             wall_s += time.perf_counter() - t0
+            latest = snapshot()
             recent = (recent + episodes)[-PROGRESS_EPISODES:]
             mean = lambda key: float(np.mean([e[key] for e in episodes])) if episodes else float("nan")
             row = dict(update=update, env_steps=env_steps, episodes=len(episodes), success=mean("success"),
@@ -1933,17 +2091,24 @@ def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSetting
             log_rows.append({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
             write_csv(log_rows, log_path, TRAIN_LOG_FIELDS)
             if update % p.checkpoint_every == 0 or env_steps >= total_steps:
-                save_checkpoint(ckpt_path, dict(format="objfind-ppo", model=model.state_dict(),
-                                                optimizer=optimizer.state_dict(), update=update,
-                                                env_steps=env_steps, wall_s=wall_s, seed=seed, obs_dim=obs_dim,
-                                                settings=vars(p).copy(), **(meta or {})))
+                save_checkpoint(ckpt_path, latest)
+                saved_update = update
                 plot_learning_curve(log_rows, out_dir / "curve.png")
             bar.update(min(env_steps, total_steps) - bar.n)
-            bar.set_postfix(steps_per_s=f"{steps_per_worker * workers / (time.perf_counter() - t0):.0f}",
+            bar.set_postfix(steps_per_s=f"{n / (time.perf_counter() - t0):.0f}",
                             success=f"{np.mean([e['success'] for e in recent]) if recent else 0:.2f}")
+    except KeyboardInterrupt:
+        if latest is not None and latest["update"] > saved_update:
+            save_checkpoint(ckpt_path, latest)
+            write_csv([r for r in log_rows if int(r["update"]) <= latest["update"]], log_path, TRAIN_LOG_FIELDS)
+            plot_learning_curve(log_rows, out_dir / "curve.png")
+        kept = latest or checkpoint
+        raise TrainingInterrupted(kept["update"] if kept else 0, kept["env_steps"] if kept else 0, ckpt_path) from None
     finally:
         bar.close()
-        if workers > 1:
+        if handles_sigterm:
+            signal.signal(signal.SIGTERM, previous_handler)
+        if processes > 1:
             pool.terminate()
         ROLLOUT_WORKER.get("env") and ROLLOUT_WORKER.pop("env").close()
     return dict(update=update, env_steps=env_steps, model=model, log=log_rows)
@@ -1982,7 +2147,10 @@ def default_weights(agent: str, task: str) -> Path:
 
 def load_agent(path: Path) -> PPOAgent:
     """A trained policy from its checkpoint (torch.load with weights_only=True), as an eval agent."""
-    return PPOAgent(read_checkpoint(Path(path)))
+    checkpoint = read_checkpoint(Path(path))
+    if checkpoint["obs_dim"] != STATE_SIZE:
+        raise UsageError(f"{str(path)!r} is for a {checkpoint['obs_dim']}-value state, not the {STATE_SIZE} of Fig. 2")
+    return PPOAgent(checkpoint)
 
 
 def make_agent(name: str, seed: int, weights: Path | None = None, task: str = "ap"):
@@ -2041,7 +2209,7 @@ def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 
             bar.update(len(chunk))
     else:
         import multiprocessing
-        with multiprocessing.get_context("spawn").Pool(workers) as pool:
+        with multiprocessing.get_context("spawn").Pool(workers, ignore_sigint) as pool:
             jobs = [pool.apply_async(evaluate_chunk, (agent_name, task, scene, c, weights)) for c in chunks]
             for job in jobs:
                 rows += job.get()
@@ -2058,7 +2226,7 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     p = successes / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return centre - half, centre + half
+    return max(0.0, centre - half), min(1.0, centre + half)   # rounding must not print -0.0
 
 
 def summarise(rows: list) -> dict:
@@ -2076,16 +2244,55 @@ def summarise(rows: list) -> dict:
                 decision_ms=float(np.mean([r["decision_ms"] for r in rows])))
 
 
-def read_csv(path: Path, seeds: list) -> list | None:
-    """The rows of an earlier run of exactly these seeds, or None (then the cell is run again)."""
-    if not path.is_file():
+EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fraction", "explored_fraction",
+                  "decision_ms")   # the columns of an evaluation CSV, one row per episode
+
+
+def parse_bool(text: str) -> bool:
+    """True/False whatever the case (a spreadsheet writes TRUE), or 1/0; anything else is an error."""
+    value = {"true": True, "1": True, "false": False, "0": False}.get(text.strip().lower())
+    if value is None:
+        raise ValueError(f"{text!r} is not true or false")
+    return value
+
+
+def read_episodes(path: Path) -> list:
+    """The rows of an evaluation CSV, each column parsed by its name; any row that does not parse is a
+    one-line UsageError naming the file and the row. Never a plausible wrong number."""
+    kinds = dict(seed=int, target_present=parse_bool, success=parse_bool, steps=int, target_seen_fraction=float,
+                 explored_fraction=float, decision_ms=float)
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            header = reader.fieldnames or []
+            if sorted(header) != sorted(EPISODE_FIELDS):
+                raise UsageError(f"{str(path)} has columns {', '.join(header) or '(none)'}, not "
+                                 f"{', '.join(EPISODE_FIELDS)}")
+            rows = []
+            for line, row in enumerate(reader, start=2):
+                try:
+                    if None in row or None in row.values():
+                        raise ValueError("it has a different number of fields than the header")
+                    rows.append({k: kinds[k](v) for k, v in row.items()})
+                except ValueError as error:
+                    raise UsageError(f"{str(path)}, line {line}: {error}") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise UsageError(f"cannot read {str(path)!r} ({error.__class__.__name__})") from None
+    return rows
+
+
+def stored_cell(path: Path, seeds: list) -> list | None:
+    """The rows of a finished cell: None if no CSV is there yet, its rows if they are exactly these
+    seeds. A CSV of other seeds or episode counts is another experiment: refused, never overwritten."""
+    if not path.exists():
         return None
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    if [int(r["seed"]) for r in rows] != list(seeds):
-        return None
-    kinds = dict(seed=int, target_present=lambda t: t == "True", success=lambda t: t == "True", steps=int)
-    return [{k: kinds.get(k, float)(v) for k, v in r.items()} for r in rows]
+    rows = read_episodes(path)
+    have = [r["seed"] for r in rows]
+    if have != list(seeds):
+        described = f"{len(have)} episodes from seed {have[0]}" if have else "no episodes"
+        raise UsageError(f"{str(path)} holds {described}, not {len(seeds)} from seed {seeds[0]}: "
+                         "pass another --out, or delete that file to replace it")
+    return rows
 
 
 def table_markdown(cells: dict, episodes: int) -> str:
@@ -2224,17 +2431,23 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
             status += "  SUCCESS" if info["success"] else "  FAILURE"
         frames.append(demo_frame(env, state, status))
     env.close()
-    out_dir.mkdir(exist_ok=True)
-    stem = out_dir / f"demo-{task}-{scene}-{agent_name}"
+    stem = writable_folder(out_dir) / f"demo-{task}-{scene}-{agent_name}"
     picks = sorted(set(np.linspace(0, len(frames) - 1, 4).round().astype(int)))
-    sheet = np.concatenate([frames[i] for i in picks], axis=0)
     png, mp4 = stem.with_suffix(".png"), stem.with_suffix(".mp4")
-    cv2.imwrite(str(png), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
-    h, w = frames[0].shape[:2]
-    writer = cv2.VideoWriter(str(mp4), cv2.VideoWriter_fourcc(*"mp4v"), 4, (w, h))
-    for frame in frames:
-        writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
-    writer.release()
+    write_image(png, np.concatenate([frames[i] for i in picks], axis=0))
+
+    def write_video(tmp):
+        h, w = frames[0].shape[:2]
+        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"),
+                                 ObjectFindingEnv.metadata["render_fps"], (w, h))
+        if not writer.isOpened():
+            raise OSError("OpenCV could not open a video writer")
+        for frame in frames:
+            writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+        writer.release()
+        if not tmp.is_file() or tmp.stat().st_size == 0:
+            raise OSError("OpenCV wrote no video")
+    replace_atomically(mp4, write_video)
     return png, mp4, info
 
 
@@ -2343,6 +2556,83 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
 
 
 # ================================================================================================
+# Soak: many random episodes with hostile actions, counting what must never happen.
+# ================================================================================================
+
+SOAK_HOSTILE = (np.nan, np.inf, -np.inf, 1e9, -1e9)   # mixed into random actions; the first three are refused
+SOAK_TERMINATE_PROB = 0.05                             # about 20 steps per soak episode
+SOAK_HOSTILE_PROB = 0.1                                # share of actions with one hostile component
+
+
+def soak_chunk(task: str, scene: str, seeds: list) -> dict:
+    """Episodes of random actions, a fresh env each, every other one dropped without close(). Counts
+    crashes (any error but a refused non-finite action), non-finite observations or rewards, and
+    pybullet connections still open once the envs are gone."""
+    import gc
+    counts = dict(episodes=0, steps=0, refused=0, crashes=0, non_finite=0, leaked=0, first_crash="")
+    clients = []
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        env = ObjectFindingEnv(task, scene)
+        clients.append(env.sim._client)
+        try:
+            obs, _ = env.reset(seed=seed)
+            counts["non_finite"] += int(not np.all(np.isfinite(obs)))
+            done = False
+            while not done:
+                action = rng.uniform(-1, 1, ACTION_SIZE)
+                action[ACTION_MOVES] = 1.0 if rng.random() < SOAK_TERMINATE_PROB else -1.0
+                if rng.random() < SOAK_HOSTILE_PROB:
+                    action[rng.integers(ACTION_SIZE)] = SOAK_HOSTILE[rng.integers(len(SOAK_HOSTILE))]
+                try:
+                    obs, reward, done, _, _ = env.step(action)
+                except ValueError:
+                    if np.all(np.isfinite(action)):
+                        raise
+                    counts["refused"] += 1
+                    continue
+                counts["steps"] += 1
+                counts["non_finite"] += int(not (np.all(np.isfinite(obs)) and np.isfinite(reward)))
+            counts["episodes"] += 1
+        except Exception as error:   # noqa: BLE001  counted, not raised: a soak reports every kind of failure
+            counts["crashes"] += 1
+            counts["first_crash"] = counts["first_crash"] or f"{task}/{scene} seed {seed}: {error!r}"[:300]
+        if seed % 2:
+            env.close()
+        del env
+    gc.collect()
+    counts["leaked"] = sum(pb.isConnected(physicsClientId=c) for c in clients)
+    return counts
+
+
+def run_soak(episodes: int, workers: int, seed: int = 0, progress: bool = True) -> dict:
+    """`episodes` soak episodes spread over both tasks and all five scene kinds; the summed counts."""
+    kinds = [(task, scene) for task in ("ap", "ip") for scene in SCENES]
+    seeds = list(range(seed, seed + episodes))
+    per_kind = [seeds[j::len(kinds)] for j in range(len(kinds))]          # episode i: kind i mod 10
+    jobs = [(*kind, part[i:i + EVAL_CHUNK]) for kind, part in zip(kinds, per_kind)
+            for i in range(0, len(part), EVAL_CHUNK)]
+    total = dict(episodes=0, steps=0, refused=0, crashes=0, non_finite=0, leaked=0, first_crash="")
+    bar = tqdm(total=episodes, desc="soak", unit="ep", disable=not progress, file=sys.stderr)
+
+    def add(part):
+        for k, v in part.items():
+            total[k] = (total[k] or v) if k == "first_crash" else total[k] + v
+        bar.update(part["episodes"] + part["crashes"])
+
+    if workers <= 1:
+        for job in jobs:
+            add(soak_chunk(*job))
+    else:
+        import multiprocessing
+        with multiprocessing.get_context("spawn").Pool(workers, ignore_sigint) as pool:
+            for part in pool.starmap(soak_chunk, jobs):
+                add(part)
+    bar.close()
+    return total
+
+
+# ================================================================================================
 # Command line: demo, eval, train and bench. Bad input ends with one line and exit status 2.
 # ================================================================================================
 
@@ -2377,26 +2667,14 @@ def ppo_setting_arg(text: str) -> tuple[str, float]:
     if name not in defaults:
         raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE with NAME one of {', '.join(defaults)}")
     try:
-        return name, type(defaults[name])(value)
+        typed = type(defaults[name])(value)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{value!r} is not a {type(defaults[name]).__name__}") from None
-
-
-def output_dir(text: str) -> Path:
-    """An output folder: created if missing, but its parent must exist."""
-    path = Path(text)
-    if not path.parent.is_dir():
-        raise UsageError(f"the parent of the output folder {text!r} does not exist")
-    if path.exists() and not path.is_dir():
-        raise UsageError(f"{text!r} exists and is not a folder")
-    return path
-
-
-def output_file(text: str) -> Path:
-    path = Path(text)
-    if not path.parent.is_dir():
-        raise UsageError(f"the folder of the output file {text!r} does not exist")
-    return path
+    try:
+        ppo_settings({name: typed})
+    except UsageError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return name, typed
 
 
 def default_task(agent: str | None) -> str:
@@ -2404,10 +2682,20 @@ def default_task(agent: str | None) -> str:
     return "ip" if agent in ("ges", "i3de") else "ap"
 
 
+def learned_weights(args) -> Path | None:
+    """--weights, which only a learned agent takes; checked before any work."""
+    if args.weights is None:
+        return None
+    if args.agent not in LEARNED:
+        raise UsageError(f"--weights is for the learned agents ({', '.join(LEARNED)}), not {args.agent}")
+    load_agent(Path(args.weights))
+    return Path(args.weights)
+
+
 def cmd_demo(args) -> int:
     args.task = args.task or default_task(args.agent)
-    weights = Path(args.weights) if args.weights else None
-    png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, output_dir(args.out), weights)
+    weights, out = learned_weights(args), writable_folder(Path(args.out))
+    png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, out, weights)
     outcome = "success" if info["success"] else "failure"
     print(f"{args.agent} on {args.task}/{args.scene} seed {args.seed}: {outcome} after {info['steps']} steps "
           f"(target seen {info['target_seen_fraction']:.2f}, explored {info['explored_fraction']:.2f})")
@@ -2430,37 +2718,50 @@ def table_cells():
     return [(agent, task, scene) for (agent, task), scenes in PAPER_TABLE_II.items() for scene in scenes]
 
 
+def eval_table(args) -> int:
+    """Every cell of Table II. A cell whose CSV in --out holds exactly these episodes is read back, so an
+    interrupted table loses nothing; a CSV of another experiment (other seeds or episode count) is
+    refused before any episode runs, never overwritten. table2.md is written only for a whole table."""
+    if args.agent or args.weights:
+        raise UsageError("--table runs every agent with its shipped weights: drop --agent and --weights")
+    out = writable_folder(Path(args.out or "results"))
+    seeds = list(range(args.seed, args.seed + args.episodes))
+    stored = {cell: stored_cell(out / f"{'-'.join(cell)}.csv", seeds) for cell in table_cells()}
+    cells = {}
+    for (agent, task, scene), rows in stored.items():
+        csv_path = out / f"{agent}-{task}-{scene}.csv"
+        if rows is None and args.from_csv:
+            print(f"{agent} on {task}/{scene}: - (not run yet: no {csv_path})")
+            continue
+        if rows is None:
+            try:
+                rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers)
+            except UsageError as error:
+                print(f"{agent} on {task}/{scene}: - ({error})")
+                continue
+            write_csv(rows, csv_path)
+        cells[(agent, task, scene)] = summarise(rows)
+        print_summary(agent, task, scene, cells[(agent, task, scene)])
+    markdown = table_markdown(cells, args.episodes)
+    print(markdown)
+    missing = len(stored) - len(cells)
+    if missing:
+        print(f"{missing} of {len(stored)} cells missing: {out / 'table2.md'} not written; "
+              f"the {len(cells)} finished cells are in {out}")
+        return 0
+    replace_atomically(out / "table2.md", lambda tmp: tmp.write_text(markdown + "\n"))
+    print(f"wrote {out / 'table2.md'} and one CSV per cell in {out}")
+    return 0
+
+
 def cmd_eval(args) -> int:
     if args.table:
-        out = output_dir(args.out or "results")
-        out.mkdir(exist_ok=True)
-        cells = {}
-        for agent, task, scene in table_cells():
-            csv_path = out / f"{agent}-{task}-{scene}.csv"
-            # a cell finished by an earlier (perhaps interrupted) run of the same seeds is reused
-            rows = read_csv(csv_path, range(args.seed, args.seed + args.episodes))
-            if rows is None and args.from_csv:
-                print(f"{agent} on {task}/{scene}: - (not run yet: no {csv_path} of these episodes)")
-                continue
-            if rows is None:
-                try:
-                    rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers)
-                except UsageError as error:
-                    print(f"{agent} on {task}/{scene}: - ({error})")
-                    continue
-                write_csv(rows, csv_path)
-            cells[(agent, task, scene)] = summarise(rows)
-            print_summary(agent, task, scene, cells[(agent, task, scene)])
-        markdown = table_markdown(cells, args.episodes)
-        (out / "table2.md").write_text(markdown + "\n")
-        print(markdown)
-        print(f"wrote {out / 'table2.md'} and one CSV per cell in {out}")
-        return 0
+        return eval_table(args)
     if args.agent is None:
         raise UsageError("eval needs --agent or --table")
     args.task = args.task or default_task(args.agent)
-    csv_path = output_file(args.out) if args.out else None
-    weights = Path(args.weights) if args.weights else None
+    csv_path = writable_file(Path(args.out)) if args.out else None
+    weights = learned_weights(args)
     rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, weights=weights)
     print_summary(args.agent, args.task, args.scene, summarise(rows))
     if csv_path:
@@ -2470,23 +2771,45 @@ def cmd_eval(args) -> int:
 
 
 def cmd_train(args) -> int:
-    if args.out is None:
-        Path("runs").mkdir(exist_ok=True)
-    out = output_dir(args.out or str(Path("runs") / f"{args.task}-{args.scene}"))
-    if not args.resume and (out / "checkpoint.pt").exists():
-        raise UsageError(f"{str(out)!r} already holds a run: add --resume to continue it, or pick another --out")
-    if args.resume and (args.set or args.init or args.fresh_terminate):
-        raise UsageError("--set, --init and --fresh-terminate start a new run; a resumed run keeps its own")
-    if args.fresh_terminate and not args.init:
-        raise UsageError("--fresh-terminate needs --init")
+    if args.resume:
+        if args.set or args.init or args.fresh_terminate:
+            raise UsageError("--set, --init and --fresh-terminate start a new run; a resumed run keeps its own")
+        out = Path(args.out or Path("runs") / f"{args.task or 'ap'}-{args.scene or 'cubes'}")
+        if not (out / "checkpoint.pt").exists():
+            raise UsageError(f"--resume: no checkpoint in {str(out)!r}")
+        run = read_checkpoint(out / "checkpoint.pt")
+        for flag in ("task", "scene"):   # a run continues on what it was trained on, or is refused
+            given, stored = getattr(args, flag), run.get(flag)
+            if given is not None and stored is not None and given != stored:
+                raise UsageError(f"--{flag} {given}: the run in {str(out)!r} trains on {flag} {stored}; "
+                                 f"leave --{flag} out to continue it")
+            setattr(args, flag, given or stored or ("ap" if flag == "task" else "cubes"))
+    else:
+        args.task, args.scene = args.task or "ap", args.scene or "cubes"
+        if args.out is None:
+            writable_folder(Path("runs"))
+        out = Path(args.out or Path("runs") / f"{args.task}-{args.scene}")
+        if (out / "checkpoint.pt").exists():
+            raise UsageError(f"{str(out)!r} already holds a run: add --resume to continue it, or pick another --out")
+        if args.fresh_terminate and not args.init:
+            raise UsageError("--fresh-terminate needs --init")
+    writable_folder(out)
     init = read_checkpoint(Path(args.init)) if args.init else None
     meta = dict(task=args.task, scene=args.scene)
     if init is not None:
         meta["init"] = (f"{Path(args.init).name} ({init.get('task', '?')}/{init.get('scene', '?')}, update "
                         f"{init.get('update', '?')}){', terminate reset' if args.fresh_terminate else ''}")
-    result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
-                   PPOSettings(**dict(args.set or [])), workers=args.workers, seed=args.seed, resume=args.resume,
-                   meta=meta, init=init, fresh_terminate=args.fresh_terminate)
+    resume_command = (f"python objfind.py train --resume --out {out} --steps {args.steps} --workers {args.workers}")
+    try:
+        result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
+                       ppo_settings(dict(args.set or [])), workers=args.workers, seed=args.seed,
+                       resume=args.resume, meta=meta, init=init, fresh_terminate=args.fresh_terminate)
+    except TrainingInterrupted as stop:
+        if stop.update == 0:
+            sys.stderr.write("objfind: interrupted before the first update finished; nothing was kept\n")
+        else:
+            sys.stderr.write(f"objfind: interrupted; kept {stop} in {stop.path}; resume with: {resume_command}\n")
+        return 130
     print(f"trained {result['env_steps']} env steps in {result['update']} updates; "
           f"wrote {out / 'checkpoint.pt'}, {out / 'log.csv'} and {out / 'curve.png'}")
     return 0
@@ -2495,6 +2818,17 @@ def cmd_train(args) -> int:
 def cmd_bench(args) -> int:
     print(run_bench(args.steps, args.workers, args.repeats))
     return 0
+
+
+def cmd_soak(args) -> int:
+    t0 = time.perf_counter()
+    c = run_soak(args.episodes, args.workers, args.seed)
+    print(f"soak: {c['episodes']} episodes, {c['steps']} steps over ap and ip x {len(SCENES)} scene kinds in "
+          f"{time.perf_counter() - t0:.0f} s; {c['refused']} non-finite actions refused; crashes {c['crashes']}, "
+          f"non-finite observations or rewards {c['non_finite']}, leaked connections {c['leaked']}")
+    if c["first_crash"]:
+        print(f"first crash: {c['first_crash']}")
+    return 1 if c["crashes"] or c["non_finite"] or c["leaked"] else 0
 
 
 TASK_HELP = "Table I preset: ap (active), ap-large, ip (interactive, piles); default ip for ges and i3de, ap otherwise"
@@ -2518,10 +2852,14 @@ def build_parser() -> ArgumentParser:
     demo.add_argument("--weights", help=WEIGHTS_HELP)
     demo.set_defaults(func=cmd_demo)
     training = commands.add_parser("train", help="train A3DE (ap) or I3DE (ip) with PPO; resumable")
-    training.add_argument("--task", choices=list(TASKS), default="ap", help="ap trains A3DE, ip trains I3DE")
-    training.add_argument("--scene", choices=SCENES, default="cubes", help="scene kind to train on (default cubes)")
+    training.add_argument("--task", choices=list(TASKS),
+                          help="ap trains A3DE, ip trains I3DE (default ap; with --resume, the run's own)")
+    training.add_argument("--scene", choices=SCENES,
+                          help="scene kind to train on (default cubes; with --resume, the run's own)")
     training.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1,
-                          help="env worker processes (default all cores)")
+                          help="env worker processes (default all cores). A new run splits each batch into "
+                               "this many rollout streams; a resumed run keeps its streams and repeats exactly "
+                               "with any worker count")
     training.add_argument("--steps", type=positive_arg, default=2_000_000,
                           help="env steps in all, counting those of a resumed run (default 2000000)")
     training.add_argument("--seed", type=count_arg, default=0,
@@ -2558,6 +2896,12 @@ def build_parser() -> ArgumentParser:
                        help="processes for the throughput rows (default all cores)")
     bench.add_argument("--repeats", type=positive_arg, default=3, help="report the best of this many runs")
     bench.set_defaults(func=cmd_bench)
+    soak = commands.add_parser("soak", help="random episodes with NaN, infinite and extreme actions; counts "
+                                            "crashes, non-finite observations and leaked connections")
+    soak.add_argument("--episodes", type=positive_arg, default=2000, help="episodes in all (default 2000)")
+    soak.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1, help="worker processes")
+    soak.add_argument("--seed", type=count_arg, default=0, help="episode i uses seed + i (default 0)")
+    soak.set_defaults(func=cmd_soak)
     return parser
 
 
@@ -2568,6 +2912,10 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as error:
         sys.stderr.write(f"objfind: error: {error}\n")
         return 2
+    except KeyboardInterrupt:
+        kept = " (each finished cell's CSV is kept: the same command goes on)" if args.command == "eval" else ""
+        sys.stderr.write(f"objfind: interrupted{kept}\n")
+        return 130
 
 
 if __name__ == "__main__":

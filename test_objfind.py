@@ -1,5 +1,6 @@
 """Tests for objfind: each asserts a behaviour that a wrong implementation would break."""
 import dataclasses
+import functools
 import subprocess
 import sys
 from pathlib import Path
@@ -707,8 +708,9 @@ def test_eval_csv_round_trips_for_resumed_tables(tmp_path):
                  explored_fraction=0.5, decision_ms=1.5)]
     path = tmp_path / "cell.csv"
     of.write_csv(rows, path)
-    assert of.read_csv(path, [3]) == rows
-    assert of.read_csv(path, [4]) is None and of.read_csv(tmp_path / "none.csv", [3]) is None
+    assert of.stored_cell(path, [3]) == rows and of.stored_cell(tmp_path / "none.csv", [3]) is None
+    with pytest.raises(of.UsageError, match="holds 1 episodes from seed 3, not 1 from seed 4"):
+        of.stored_cell(path, [4])                       # another experiment's cell: refused, never replaced
 
 
 def test_table_two_pools_the_no_target_scenes_of_each_agent():
@@ -920,7 +922,7 @@ def test_the_learning_curve_has_labelled_ticks_on_both_axes(tmp_path):
 
 def test_a_killed_checkpoint_write_leaves_the_last_checkpoint_readable(tmp_path):
     of.train(Reach, tmp_path, total_steps=256, p=TINY_PPO, progress=False)
-    (tmp_path / "checkpoint.pt.tmp").write_bytes(b"half a file")       # a write that was killed
+    (tmp_path / "checkpoint.tmp.pt").write_bytes(b"half a file")       # a write that was killed
     assert of.read_checkpoint(tmp_path / "checkpoint.pt")["update"] == 1
     truncated = tmp_path / "truncated.pt"
     truncated.write_bytes((tmp_path / "checkpoint.pt").read_bytes()[:200])
@@ -999,3 +1001,213 @@ def test_a_policy_checkpoint_runs_as_an_eval_agent(tmp_path):
                                   settings=vars(of.PPOSettings()), task="ap", scene="cubes"))
     rows = of.evaluate("a3de", "ap", "cubes", episodes=2, workers=1, progress=False, weights=path)
     assert len(rows) == 2 and all(1 <= r["steps"] <= 130 for r in rows)
+
+
+# ------------------------------------------------------------------------------------------------
+# nothing a user types loses results or reports something false
+# ------------------------------------------------------------------------------------------------
+
+UNWRITABLE = "/proc/self/objfind-out"   # no file can be made under /proc, not even by root
+
+
+def one_line_exit_two(capsys, args) -> str:
+    assert of.main(args) == 2, args
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("objfind: error:"), err
+    return err
+
+
+def no_episodes(monkeypatch):
+    """Make any evaluation or demo episode fail the test: the checks must come before the work."""
+    def refuse(*args, **kwargs):
+        raise AssertionError("an episode ran before the input was checked")
+    monkeypatch.setattr(of, "evaluate", refuse)
+    monkeypatch.setattr(of, "run_demo", refuse)
+
+
+def test_a_table_of_other_episodes_leaves_the_stored_cells_byte_identical(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "results"
+    out.mkdir()
+    rows = [dict(seed=i, target_present=True, success=True, steps=5, target_seen_fraction=0.3,
+                 explored_fraction=0.5, decision_ms=1.0) for i in range(30)]
+    of.write_csv(rows, out / "gnbv-ap-cubes.csv")
+    (out / "table2.md").write_text("the stored table\n")
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    no_episodes(monkeypatch)
+    err = one_line_exit_two(capsys, ["eval", "--table", "--episodes", "20", "--out", str(out)])
+    assert "gnbv-ap-cubes.csv holds 30 episodes from seed 0, not 20" in err
+    one_line_exit_two(capsys, ["eval", "--table", "--episodes", "30", "--seed", "1", "--out", str(out)])
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    # the same experiment, read back: an incomplete table prints but does not write table2.md
+    assert of.main(["eval", "--table", "--episodes", "30", "--from-csv", "--out", str(out)]) == 0
+    assert "table2.md not written" in capsys.readouterr().out
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def cell_csv(path: Path, header: str, lines: list) -> Path:
+    path.write_text(header + "\n" + "\n".join(lines) + "\n")
+    return path
+
+
+def test_episode_csvs_are_read_strictly(tmp_path, capsys, monkeypatch):
+    fields = "seed,target_present,success,steps,target_seen_fraction,explored_fraction,decision_ms"
+    # a spreadsheet's TRUE/FALSE, and columns in another order: read by name, the right rate
+    spreadsheet = cell_csv(tmp_path / "a.csv", fields, [f"{i},TRUE,{'TRUE' if i < 9 else 'FALSE'},5,0.3,0.5,1.0"
+                                                        for i in range(10)])
+    assert np.mean([r["success"] for r in of.read_episodes(spreadsheet)]) == 0.9
+    reordered = cell_csv(tmp_path / "b.csv", "success,target_present," + fields.replace("target_present,success,", ""),
+                         [f"{'True' if i < 9 else 'False'},true,{i},5,0.3,0.5,1.0" for i in range(10)])
+    rows = of.read_episodes(reordered)
+    assert np.mean([r["success"] for r in rows]) == 0.9 and all(r["target_present"] for r in rows)
+    bad = {"truncated line": cell_csv(tmp_path / "c.csv", fields, ["0,True,True,5,0.3,0.5,1.0", "1,True,Tr"]),
+           "no header": cell_csv(tmp_path / "d.csv", "0,True,True,5,0.3,0.5,1.0", ["1,True,True,5,0.3,0.5,1.0"]),
+           "not a boolean": cell_csv(tmp_path / "e.csv", fields, ["0,yes,True,5,0.3,0.5,1.0"])}
+    for name, path in bad.items():
+        with pytest.raises(of.UsageError, match=str(path.name)):
+            of.read_episodes(path)
+    # inside a table: one line naming the file, before any episode runs
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "gnbv-ap-cubes.csv").write_bytes((tmp_path / "c.csv").read_bytes())
+    no_episodes(monkeypatch)
+    assert "gnbv-ap-cubes.csv, line 3" in one_line_exit_two(capsys, ["eval", "--table", "--out", str(out)])
+
+
+def test_outputs_are_checked_before_any_episode(tmp_path, capsys, monkeypatch):
+    no_episodes(monkeypatch)
+    (tmp_path / "folder.csv").mkdir()
+    (tmp_path / "a-file").write_text("")
+    for args in (["demo", "--agent", "random", "--out", UNWRITABLE],
+                 ["demo", "--agent", "random", "--out", str(tmp_path / "a-file")],
+                 ["eval", "--agent", "random", "--out", UNWRITABLE + ".csv"],
+                 ["eval", "--agent", "random", "--out", str(tmp_path / "folder.csv")],
+                 ["eval", "--table", "--out", UNWRITABLE],
+                 ["eval", "--agent", "gnbv", "--weights", "weights/a3de.pt"],     # weights for a baseline
+                 ["train", "--out", UNWRITABLE]):
+        one_line_exit_two(capsys, args)
+    assert not list(tmp_path.glob("**/*.tmp*"))
+
+
+def test_a_failed_image_or_video_write_is_one_line_and_exit_two(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(of.cv2, "imwrite", lambda *args, **kwargs: False)
+    err = one_line_exit_two(capsys, ["demo", "--agent", "random", "--seed", "2", "--out", str(tmp_path)])
+    assert "could not write" in err and not list(tmp_path.iterdir())
+
+
+def test_a_non_finite_or_misshapen_action_is_refused_and_the_env_goes_on(ap_env):
+    fresh = of.ObjectFindingEnv("ap", "cubes")
+    with pytest.raises(RuntimeError, match="reset"):
+        fresh.step(np.zeros(6))                                          # before any reset
+    fresh.close()
+    obs, _ = ap_env.reset(seed=3)
+    for bad, name in (([np.nan, 0, 0, 0, 0, -1], "dx"), ([0, 0, 0, 0, np.nan, -1], "yaw"),
+                      ([0, 0, np.inf, 0, 0, -1], "dz"), (np.zeros((2, 3)), "shape"), ([0, 0, 1], "shape")):
+        with pytest.raises(ValueError, match=name):
+            ap_env.step(np.array(bad, np.float64))
+    obs, reward, done, _, info = ap_env.step(np.array([0, 0, 1, 0, 0, -1.0]))
+    assert np.all(np.isfinite(obs)) and np.isfinite(reward) and info["steps"] == 1 and not done
+    ap_env.step(of.stop_action())
+    with pytest.raises(RuntimeError, match="ended"):
+        ap_env.step(np.zeros(6))                                         # after the episode's end
+
+
+def test_dropped_envs_release_their_physics_connection():
+    import gc
+    clients = []
+    for _ in range(20):
+        env = of.ObjectFindingEnv("ap", "cubes")
+        env.reset(seed=0)
+        clients.append(env.sim._client)
+        del env                                                           # no close()
+    gc.collect()
+    assert not any(of.pb.isConnected(physicsClientId=c) for c in clients)
+
+
+def broken_checkpoints(tmp_path) -> dict:
+    good = of.read_checkpoint(Path(of.__file__).parent / "weights" / "a3de.pt")
+    cases = {"wrong shapes": dict(good, model={k: v[..., :3] if v.ndim else v for k, v in good["model"].items()}),
+             "another obs_dim": dict(good, obs_dim=40),
+             "another hidden": dict(good, settings=dict(good["settings"], hidden=64)),
+             "no settings": {k: v for k, v in good.items() if k != "settings"},
+             "NaN weights": dict(good, model={k: v * float("nan") if v.is_floating_point() else v
+                                              for k, v in good["model"].items()})}
+    paths = {}
+    for name, checkpoint in cases.items():
+        paths[name] = tmp_path / (name.replace(" ", "-") + ".pt")
+        of.torch.save(checkpoint, paths[name])
+    return paths
+
+
+def test_a_checkpoint_of_the_wrong_shape_or_with_nan_weights_is_one_line_everywhere(tmp_path, capsys, monkeypatch):
+    no_episodes(monkeypatch)
+    for name, path in broken_checkpoints(tmp_path).items():
+        for args in (["eval", "--agent", "a3de", "--weights", str(path)],
+                     ["demo", "--agent", "a3de", "--weights", str(path)],
+                     ["train", "--init", str(path), "--out", str(tmp_path / "run")]):
+            one_line_exit_two(capsys, args)
+        run = tmp_path / ("resume-" + path.stem)
+        run.mkdir()
+        (run / "checkpoint.pt").write_bytes(path.read_bytes())
+        one_line_exit_two(capsys, ["train", "--resume", "--out", str(run)])
+
+
+def test_resume_keeps_the_runs_task_and_scene(tmp_path, capsys, monkeypatch):
+    of.train(Reach, tmp_path / "run", total_steps=256, p=TINY_PPO, progress=False, meta=dict(task="ip", scene="cubes"))
+    run = str(tmp_path / "run")
+    assert "trains on task ip" in one_line_exit_two(capsys, ["train", "--resume", "--task", "ap", "--out", run])
+    assert "scene cubes" in one_line_exit_two(capsys, ["train", "--resume", "--scene", "random-shapes", "--out", run])
+    made = []
+    monkeypatch.setattr(of, "train", lambda make_env, *args, **kwargs: made.append(make_env.args) or
+                        dict(env_steps=0, update=0))
+    assert of.main(["train", "--resume", "--out", run]) == 0 and made == [("ip", "cubes")]
+
+
+def test_a_resumed_run_repeats_exactly_with_another_worker_count(tmp_path):
+    env = functools.partial(of.ObjectFindingEnv, "ap", "cubes")
+    p = of.PPOSettings(hidden=16, batch_steps=64, minibatch=32, epochs=2, checkpoint_every=1)
+    straight = of.train(env, tmp_path / "a", total_steps=128, p=p, workers=2, progress=False)
+    of.train(env, tmp_path / "b", total_steps=64, p=p, workers=2, progress=False)
+    resumed = of.train(env, tmp_path / "b", total_steps=128, p=p, workers=1, progress=False, resume=True)
+    for (name, a), b in zip(straight["model"].state_dict().items(), resumed["model"].state_dict().values()):
+        assert torch.equal(a, b), name
+
+
+def test_training_keeps_its_last_update_and_an_interrupted_one(tmp_path, monkeypatch, capsys):
+    p = dataclasses.replace(TINY_PPO, checkpoint_every=5)
+    of.train(Reach, tmp_path / "short", total_steps=256 * 2, p=p, progress=False)
+    assert of.read_checkpoint(tmp_path / "short" / "checkpoint.pt")["update"] == 2   # the last update
+    real_update, calls = of.ppo_update, []
+
+    def interrupted_third_update(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real_update(*args, **kwargs)
+    monkeypatch.setattr(of, "ppo_update", interrupted_third_update)
+    with pytest.raises(of.TrainingInterrupted) as stop:
+        of.train(Reach, tmp_path / "cut", total_steps=256 * 10, p=p, progress=False)
+    assert stop.value.update == 2 and of.read_checkpoint(tmp_path / "cut" / "checkpoint.pt")["update"] == 2
+    assert len(of.read_train_log(tmp_path / "cut" / "log.csv")) == 2
+    monkeypatch.setattr(of, "ppo_update", real_update)
+    resumed = of.train(Reach, tmp_path / "cut", total_steps=256 * 3, p=p, progress=False, resume=True)
+    assert resumed["update"] == 3
+    # on the command line: one line saying what was kept and how to resume
+    monkeypatch.setattr(of, "train", lambda *a, **k: (_ for _ in ()).throw(
+        of.TrainingInterrupted(7, 35000, tmp_path / "x" / "checkpoint.pt")))
+    assert of.main(["train", "--out", str(tmp_path / "x")]) == 130
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "kept update 7 (35000 env steps)" in err and "--resume --out" in err
+
+
+def test_the_success_interval_never_prints_minus_zero(capsys):
+    assert of.wilson_interval(0, 20)[0] == 0.0 and of.wilson_interval(20, 20)[1] == 1.0
+    rows = [dict(seed=i, target_present=True, success=False, steps=130, target_seen_fraction=0.0,
+                 explored_fraction=0.5, decision_ms=1.0) for i in range(20)]
+    of.print_summary("gnbv", "ap", "cubes", of.summarise(rows))
+    assert "-0.0" not in capsys.readouterr().out
+
+
+def test_a_short_soak_finds_no_crash_no_nan_and_no_leak():
+    counts = of.run_soak(episodes=10, workers=1, progress=False)
+    assert counts["episodes"] == 10 and counts["refused"] > 0
+    assert counts["crashes"] == 0 and counts["non_finite"] == 0 and counts["leaked"] == 0, counts["first_crash"]
