@@ -2605,6 +2605,10 @@ def soak_chunk(task: str, scene: str, seeds: list) -> dict:
     return counts
 
 
+def soak_job(job: tuple) -> dict:
+    return soak_chunk(*job)
+
+
 def run_soak(episodes: int, workers: int, seed: int = 0, progress: bool = True) -> dict:
     """`episodes` soak episodes spread over both tasks and all five scene kinds; the summed counts."""
     kinds = [(task, scene) for task in ("ap", "ip") for scene in SCENES]
@@ -2626,7 +2630,7 @@ def run_soak(episodes: int, workers: int, seed: int = 0, progress: bool = True) 
     else:
         import multiprocessing
         with multiprocessing.get_context("spawn").Pool(workers, ignore_sigint) as pool:
-            for part in pool.starmap(soak_chunk, jobs):
+            for part in pool.imap_unordered(soak_job, jobs):
                 add(part)
     bar.close()
     return total
