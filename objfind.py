@@ -39,6 +39,7 @@ import signal
 import sys
 import tempfile
 import time
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -118,6 +119,10 @@ class Settings:
     gnbv_samples: int = 10              # n, poses GNBV samples near the current one (simulation)
     gnbv_explored_to_stop: float = 0.97 # GNBV terminates above this explored share ("no target")
     seen_threshold: float = 0.2         # target observed once this share of its surface was seen
+    # The information rule, where the paper is silent: what every agent is told about its target. True:
+    # its size (surface area) is part of the task; the baselines' perceived share and the encoder's
+    # detection sum are relative to it. False: no agent is told; both are relative to the nominal cube.
+    target_size_known: bool = True
     # Table II caption: primitive and shape piles hold more objects
     objects_per_pile_dense: tuple = (15, 30)
 
@@ -181,6 +186,8 @@ class Settings:
     # baselines
     gnbv_rays: tuple = (16, 12)         # GNBV casts this grid of rays per candidate view
     gnbv_min_detections: int = 3        # GNBV centres the target once this many detection voxels agree
+    gnbv_stall_voxels: int = 50         # GNBV has explored all one-step moves can reach when no sampled
+    gnbv_stall_steps: int = 3           # view would reveal this many voxels (of its 16 x 12 rays) 3 times
     ges_clearance_m: float = 0.01       # GES sweeps with its fingertips this far above a nominal cube
     ges_tries_per_node: int = 3         # GES gives up a node it cannot reach (a pile) after this many
 
@@ -207,10 +214,6 @@ class Settings:
         """Surface of the nominal target, a cube of side object_size_m."""
         return 6 * self.object_size_m ** 2
 
-    @property
-    def nominal_target_voxel_faces(self) -> float:
-        """The nominal cube's surface in units of a voxel face: the encoder's scale for the detection sum."""
-        return 6 * (self.object_size_m / self.voxel_m) ** 2
 
 
 TASKS = {
@@ -1100,7 +1103,7 @@ class AgentView:
     volume: TSDFVolume            # the agent's own fused views (read only)
     K: np.ndarray                 # (3, 3) wrist camera intrinsics
     T_world_tool: np.ndarray      # (4, 4) the gripper's pose (proprioception)
-    target_area_m2: float         # the target's surface: a searcher knows what it looks for
+    target_area_m2: float         # the target's surface as told by the information rule
 
     def perceived_target_share(self) -> float:
         """Seen target area over the target's own: the searchers' stop rule (the truth decides success)."""
@@ -1119,7 +1122,7 @@ class ObjectFindingEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
     def __init__(self, task: str = "ap", scene: str = "cubes", seed: int | None = None,
-                 render_mode: str | None = None):
+                 render_mode: str | None = None, **overrides):
         if task not in TASKS:
             raise ValueError(f"unknown task {task!r}; choose from {', '.join(TASKS)}")
         if scene not in SCENES:
@@ -1127,7 +1130,10 @@ class ObjectFindingEnv(gym.Env):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"unsupported render_mode {render_mode!r}")
         self.task, self.scene, self.render_mode = task, scene, render_mode
-        self.s = s = TASKS[task]
+        try:   # e.g. target_size_known=False: any Settings field, for ablations
+            self.s = s = dataclasses.replace(TASKS[task], **overrides)
+        except TypeError:
+            raise ValueError(f"unknown Settings field among {', '.join(overrides)}") from None
         self._seed = seed
         self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (STATE_SIZE,), np.float32)
@@ -1150,6 +1156,8 @@ class ObjectFindingEnv(gym.Env):
         self.objects, self.target_present, self.heaped = scene.objects, scene.target_present, scene.heaped
         self.target_points, self.target_normals = scene.target_points, scene.target_normals
         self.target_area_m2 = scene.target_area_m2
+        # the information rule: what the searcher is told of the target's size (the nominal cube's if absent)
+        self.told_target_area_m2 = scene.target_area_m2 if s.target_size_known else s.nominal_target_area_m2
         self.target_seen = np.zeros(len(self.target_points), bool)   # (surface_points,) ever seen
         self.disturbed = False   # objects still moving after the last push
 
@@ -1263,15 +1271,17 @@ class ObjectFindingEnv(gym.Env):
         t0 = time.perf_counter()
         T = self.gripper_pose()
         yaw, roll = yaw_roll_of(T[:3, :3])
+        # the detection sum in units of the told target's surface, counted in voxel faces
         state = encode_state(self.volume, T[:3, 3], yaw, roll, T[2, 3], self.s.crop_m,
-                             self.s.nominal_target_voxel_faces)
+                             self.told_target_area_m2 / self.s.voxel_m ** 2)
         self.timings["encode"] = 1e3 * (time.perf_counter() - t0)
         return state
 
     def agent_view(self) -> AgentView:
-        """What an agent may know: its settings, the volume, the camera, its own pose and the perceived
-        share. Agents read nothing else of the env (the simulator's state is the judge, not an input)."""
-        return AgentView(self.s, self.volume, self.K, self.gripper_pose(), self.target_area_m2)
+        """What an agent may know: its settings, the volume, the camera, its own pose and the target's
+        size if the information rule grants it. Agents read nothing else of the env: the simulator's
+        state (the target's pose, its seen points, its true area) is the judge, never an input."""
+        return AgentView(self.s, self.volume, self.K, self.gripper_pose(), self.told_target_area_m2)
 
     def _info(self) -> dict:
         seen = float(self.target_seen.mean()) if self.target_present else 0.0
@@ -1455,7 +1465,7 @@ class GreedyNextBestView:
 
     def reset(self, view: AgentView) -> None:
         s = view.s
-        self.samples = s.gnbv_samples
+        self.samples, self.stalled = s.gnbv_samples, 0
         K = intrinsics(s)
         u = (np.arange(s.gnbv_rays[0]) + 0.5) * s.image_width / s.gnbv_rays[0]   # a subsampled image
         v = (np.arange(s.gnbv_rays[1]) + 0.5) * s.image_height / s.gnbv_rays[1]
@@ -1471,27 +1481,33 @@ class GreedyNextBestView:
         actions[:, ACTION_MOVES] = -1.0
         return actions
 
-    def newly_observed(self, volume: TSDFVolume, T_cameras: np.ndarray, ee_xyz, crop_m: float) -> np.ndarray:
+    def newly_observed(self, volume: TSDFVolume, T_cameras: np.ndarray, ee_xyz, s: Settings) -> np.ndarray:
         """For each (4, 4) camera pose, the unobserved voxels its rays would reach, counted once each.
 
-        A ray stops at the first observed voxel behind a surface (TSDF below 0) or at the floor;
+        A ray stops at the first observed voxel behind a surface (TSDF below 0), the floor or a wall;
         unobserved voxels are taken as empty, and voxels outside the crop around the gripper are
-        not known to the agent, so they neither count nor block.
+        not known to the agent, so they neither count nor block. A ray that hits nothing (over a
+        wall, past the floor) brings no depth, and the camera learns nothing along it: it counts 0.
         """
         observed = volume.weight.reshape(-1) > 0
         occupied = observed & (volume.tsdf.reshape(-1) < 0)
         counts = np.zeros(len(T_cameras), np.int64)
         shape = np.array(volume.shape)
+        half, floor_half = s.workspace_m / 2, s.workspace_m / 2 + 2 * s.wall_thickness_m
         for c, T in enumerate(T_cameras):
             world = self.ray_points @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)  # (R, D, 3)
             index = np.floor((world - volume.origin) / volume.voxel_m).astype(np.int64)
             inside = np.all((index >= 0) & (index < shape), axis=-1)
-            inside &= np.all(np.abs(world[..., :2] - ee_xyz[:2]) <= crop_m / 2, axis=-1)
+            inside &= np.all(np.abs(world[..., :2] - ee_xyz[:2]) <= s.crop_m / 2, axis=-1)
             flat = (index[..., 0] * shape[1] + index[..., 1]) * shape[2] + index[..., 2]
             flat = np.where(inside, flat, 0)
-            blocked = (inside & occupied[flat]) | (world[..., 2] < 0)
+            out = np.abs(world[..., :2]).max(axis=-1)
+            floor = (world[..., 2] < 0) & (out <= floor_half)
+            wall = (out > half) & (out <= floor_half) & (world[..., 2] < s.wall_height_m)
+            blocked = (inside & occupied[flat]) | floor | wall
             open_ray = ~np.logical_or.accumulate(blocked, axis=1)      # before the first blocker
-            new = open_ray & inside & ~observed[flat]
+            returns = blocked.any(axis=1)                              # (R,) the ray brings a depth
+            new = open_ray & inside & ~observed[flat] & returns[:, None]
             counts[c] = len(np.unique(flat[new]))
         return counts
 
@@ -1506,7 +1522,7 @@ class GreedyNextBestView:
 
     def act(self, obs, view: AgentView) -> np.ndarray:
         s, volume = view.s, view.volume
-        if (volume.explored_fraction() > s.gnbv_explored_to_stop
+        if (volume.explored_fraction() > s.gnbv_explored_to_stop or self.stalled >= s.gnbv_stall_steps
                 or view.perceived_target_share() > s.seen_threshold):
             return stop_action()
         T = view.T_world_tool
@@ -1516,7 +1532,9 @@ class GreedyNextBestView:
         if target is not None:
             best = int(np.argmin(self.centring_error(cameras, target, view.K)))
         else:
-            best = int(np.argmax(self.newly_observed(volume, cameras, T[:3, 3], s.crop_m)))
+            gains = self.newly_observed(volume, cameras, T[:3, 3], s)
+            best = int(np.argmax(gains))
+            self.stalled = self.stalled + 1 if gains[best] < s.gnbv_stall_voxels else 0
         return actions[best].astype(np.float32)
 
 
@@ -2180,10 +2198,11 @@ def run_episode(env: ObjectFindingEnv, agent, seed: int) -> dict:
                 decision_ms=round(1e3 * decide_s / info["steps"], 3))
 
 
-def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list, weights: Path | None = None) -> list:
+def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list, weights: Path | None = None,
+                   overrides: dict | None = None) -> list:
     """Episodes of one worker process: one env, a fresh baseline per episode (its rng seeded by the
     episode), and a learned agent loaded once (its policy is deterministic and keeps no state)."""
-    env = ObjectFindingEnv(task, scene)
+    env = ObjectFindingEnv(task, scene, **(overrides or {}))
     learned = make_agent(agent_name, seeds[0], weights, task) if agent_name in LEARNED else None
     try:
         return [run_episode(env, learned or make_agent(agent_name, seed, weights, task), seed) for seed in seeds]
@@ -2195,8 +2214,9 @@ EVAL_CHUNK = 5   # episodes per job of a worker process: small jobs keep all wor
 
 
 def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 0, workers: int = 1,
-             progress: bool = True, weights: Path | None = None) -> list:
-    """Paired episodes: episode i is scene seed + i for every agent. Rows in seed order."""
+             progress: bool = True, weights: Path | None = None, overrides: dict | None = None) -> list:
+    """Paired episodes: episode i is scene seed + i for every agent, in worlds with these Settings
+    overrides (an ablation). Rows in seed order."""
     make_agent(agent_name, seed, weights, task)   # fail early, in the parent, on an agent that cannot run
     seeds = list(range(seed, seed + episodes))
     chunks = [seeds[i:i + EVAL_CHUNK] for i in range(0, episodes, EVAL_CHUNK)]
@@ -2205,12 +2225,12 @@ def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 
     rows = []
     if workers <= 1:
         for chunk in chunks:
-            rows += evaluate_chunk(agent_name, task, scene, chunk, weights)
+            rows += evaluate_chunk(agent_name, task, scene, chunk, weights, overrides)
             bar.update(len(chunk))
     else:
         import multiprocessing
         with multiprocessing.get_context("spawn").Pool(workers, ignore_sigint) as pool:
-            jobs = [pool.apply_async(evaluate_chunk, (agent_name, task, scene, c, weights)) for c in chunks]
+            jobs = [pool.apply_async(evaluate_chunk, (agent_name, task, scene, c, weights, overrides)) for c in chunks]
             for job in jobs:
                 rows += job.get()
                 bar.update(len(rows) - bar.n)
@@ -2686,6 +2706,11 @@ def default_task(agent: str | None) -> str:
     return "ip" if agent in ("ges", "i3de") else "ap"
 
 
+def information_rule(args) -> dict:
+    """Settings overrides of --target-size: {} for the rule of Table II, or the ablation's."""
+    return {} if args.target_size == "known" else dict(target_size_known=False)
+
+
 def learned_weights(args) -> Path | None:
     """--weights, which only a learned agent takes; checked before any work."""
     if args.weights is None:
@@ -2730,16 +2755,18 @@ def eval_table(args) -> int:
         raise UsageError("--table runs every agent with its shipped weights: drop --agent and --weights")
     out = writable_folder(Path(args.out or "results"))
     seeds = list(range(args.seed, args.seed + args.episodes))
-    stored = {cell: stored_cell(out / f"{'-'.join(cell)}.csv", seeds) for cell in table_cells()}
+    suffix = "" if args.target_size == "known" else "-size-unknown"   # the ablation's files sit beside
+    stored = {cell: stored_cell(out / f"{'-'.join(cell)}{suffix}.csv", seeds) for cell in table_cells()}
     cells = {}
     for (agent, task, scene), rows in stored.items():
-        csv_path = out / f"{agent}-{task}-{scene}.csv"
+        csv_path = out / f"{agent}-{task}-{scene}{suffix}.csv"
         if rows is None and args.from_csv:
             print(f"{agent} on {task}/{scene}: - (not run yet: no {csv_path})")
             continue
         if rows is None:
             try:
-                rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers)
+                rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers,
+                                overrides=information_rule(args))
             except UsageError as error:
                 print(f"{agent} on {task}/{scene}: - ({error})")
                 continue
@@ -2750,11 +2777,11 @@ def eval_table(args) -> int:
     print(markdown)
     missing = len(stored) - len(cells)
     if missing:
-        print(f"{missing} of {len(stored)} cells missing: {out / 'table2.md'} not written; "
+        print(f"{missing} of {len(stored)} cells missing: {out / f'table2{suffix}.md'} not written; "
               f"the {len(cells)} finished cells are in {out}")
         return 0
-    replace_atomically(out / "table2.md", lambda tmp: tmp.write_text(markdown + "\n"))
-    print(f"wrote {out / 'table2.md'} and one CSV per cell in {out}")
+    replace_atomically(out / f"table2{suffix}.md", lambda tmp: tmp.write_text(markdown + "\n"))
+    print(f"wrote {out / f'table2{suffix}.md'} and one CSV per cell in {out}")
     return 0
 
 
@@ -2766,7 +2793,8 @@ def cmd_eval(args) -> int:
     args.task = args.task or default_task(args.agent)
     csv_path = writable_file(Path(args.out)) if args.out else None
     weights = learned_weights(args)
-    rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, weights=weights)
+    rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, weights=weights,
+                    overrides=information_rule(args))
     print_summary(args.agent, args.task, args.scene, summarise(rows))
     if csv_path:
         write_csv(rows, csv_path)
@@ -2839,6 +2867,8 @@ TASK_HELP = "Table I preset: ap (active), ap-large, ip (interactive, piles); def
 AGENT_HELP = ("random, scripted, the baselines gnbv and ges, or the learned a3de and i3de (shipped weights)")
 SCENE_HELP = "scene kind (default cubes)"
 
+TARGET_SIZE_HELP = ("the information rule: every agent is told its target's size (known, Table II), or no "
+                    "agent is (unknown: the ablation; use another --out for its table)")
 WEIGHTS_HELP = "a learned agent's checkpoint (default: weights/AGENT.pt, AGENT-large.pt on ap-large)"
 
 
@@ -2892,6 +2922,7 @@ def build_parser() -> ArgumentParser:
     evaluation.add_argument("--from-csv", action="store_true",
                             help="with --table: only read cells already run, print '-' for the others")
     evaluation.add_argument("--weights", help=WEIGHTS_HELP)
+    evaluation.add_argument("--target-size", choices=("known", "unknown"), default="known", help=TARGET_SIZE_HELP)
     evaluation.add_argument("--out", help="CSV of every episode (with --table: a folder, default results)")
     evaluation.set_defaults(func=cmd_eval)
     bench = commands.add_parser("bench", help="per-stage step time and env steps/s")

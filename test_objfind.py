@@ -644,7 +644,7 @@ def test_gnbv_prefers_a_view_of_unobserved_space(ap_env):
     toward_known[:3, 3] = [-0.15, 0.0, 0.3]
     toward_unknown[:3, 3] = [0.15, 0.0, 0.3]
     cameras = np.stack([of.camera_pose(P, ap_env.s) for P in (toward_known, toward_unknown)])
-    counts = gnbv.newly_observed(volume, cameras, np.zeros(3), ap_env.s.crop_m)
+    counts = gnbv.newly_observed(volume, cameras, np.zeros(3), ap_env.s)
     assert counts[1] > 10 * max(counts[0], 1)
 
 
@@ -1211,3 +1211,76 @@ def test_a_short_soak_finds_no_crash_no_nan_and_no_leak():
     counts = of.run_soak(episodes=10, workers=1, progress=False)
     assert counts["episodes"] == 10 and counts["refused"] > 0
     assert counts["crashes"] == 0 and counts["non_finite"] == 0 and counts["leaked"] == 0, counts["first_crash"]
+
+
+# ------------------------------------------------------------------------------------------------
+# one information rule for every agent
+# ------------------------------------------------------------------------------------------------
+
+
+def detection_sum_seen_the_same_way(side_m: float, target_size_known: bool) -> float:
+    """The state's detection sum after three views of a lone red cube of side `side_m`, placed at
+    distances in proportion to its size: from above and from two sides."""
+    env = of.ObjectFindingEnv("ap", "variable-primitives", target_size_known=target_size_known)
+    env.reset(seed=1)
+    for o in env.objects:
+        env.sim.removeBody(o.body)
+    s = dataclasses.replace(env.s, object_size_m=side_m)
+    target = of.make_object(env.sim, "cubes", s, np.random.default_rng(0), of.TARGET_RGBA)
+    env.sim.resetBasePositionAndOrientation(target.body, [0, 0, side_m / 2], [0, 0, 0, 1])
+    env.objects, env.target_present = [target], True
+    env.target_area_m2 = of.mesh_area(target.vertices, target.faces)
+    # what _build_scene tells the searcher under each rule
+    env.told_target_area_m2 = env.target_area_m2 if target_size_known else env.s.nominal_target_area_m2
+    env.volume.reset()
+    env.np_random = np.random.default_rng(0)                  # the same detector noise for every size
+    for offset in ([0, 0, 4], [3, 0, 3], [0, 3, 3]):
+        direction = -np.array(offset, float) / np.linalg.norm(offset)
+        roll = np.arctan2(np.hypot(direction[0], direction[1]), -direction[2])
+        yaw = np.arctan2(direction[1], direction[0]) if offset[:2] != [0, 0] else 0.0
+        env._teleport(np.array(offset, float) * side_m + [0, 0, side_m], of.gripper_rotation(yaw, roll))
+        env._observe()
+    value = float(env._state()[of.STATE_DETECTION_SUM])
+    env.close()
+    return value
+
+
+def test_the_detection_sum_is_a_share_of_the_told_target_size():
+    cube, twice = (detection_sum_seen_the_same_way(side, True) for side in (0.04, 0.08))
+    assert 0.75 < twice / cube < 1.33                      # the same share of a target twice the size
+    cube_b, twice_b = (detection_sum_seen_the_same_way(side, False) for side in (0.04, 0.08))
+    assert cube_b == pytest.approx(cube) and twice_b / cube_b > 2.5   # no size told: 4x the surface, 4x the sum
+
+
+def test_every_agent_runs_on_the_view_alone_and_the_view_grants_only_the_rule():
+    granted = {"s", "volume", "K", "T_world_tool", "target_area_m2"}
+    assert {f.name for f in dataclasses.fields(of.AgentView)} == granted
+    for known in (True, False):
+        env = of.ObjectFindingEnv("ip", "variable-primitives", target_size_known=known)
+        for name in list(of.BASELINES) + list(of.LEARNED):
+            obs, _ = env.reset(seed=5)
+            view = env.agent_view()
+            assert not any(isinstance(v, (of.ObjectFindingEnv, of.PhysicsClient)) for v in vars(view).values())
+            assert view.target_area_m2 == (env.target_area_m2 if known else env.s.nominal_target_area_m2)
+            agent = of.make_agent(name, 5, task="ip")
+            agent.reset(view)
+            for _ in range(8):                               # each agent acts on the view alone
+                obs, _, done, _, _ = env.step(agent.act(obs, env.agent_view()))
+                if done:
+                    break
+        assert env.target_present and abs(env.target_area_m2 / env.s.nominal_target_area_m2 - 1) > 0.05
+        env.close()
+
+
+def test_gnbv_ends_a_scene_without_target_by_the_explored_criterion():
+    env = of.ObjectFindingEnv("ap", "cubes")
+    agent = of.make_agent("gnbv", 25)
+    obs, info = env.reset(seed=25)
+    agent.reset(env.agent_view())
+    done = False
+    while not done:
+        obs, _, done, _, info = env.step(agent.act(obs, env.agent_view()))
+    env.close()
+    assert not info["target_present"] and info["terminated_by_agent"] and info["success"]
+    assert info["steps"] < env.s.horizon and info["explored_fraction"] > env.s.gnbv_explored_to_stop
+    assert agent.stalled < env.s.gnbv_stall_steps         # ended by 97 % explored, not by the stall rule
