@@ -2582,6 +2582,7 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
 SOAK_HOSTILE = (np.nan, np.inf, -np.inf, 1e9, -1e9)   # mixed into random actions; the first three are refused
 SOAK_TERMINATE_PROB = 0.05                             # about 20 steps per soak episode
 SOAK_HOSTILE_PROB = 0.1                                # share of actions with one hostile component
+SOAK_COUNTS = dict(episodes=0, steps=0, refused=0, crashes=0, non_finite=0, leaked=0, first_crash="")
 
 
 def soak_chunk(task: str, scene: str, seeds: list) -> dict:
@@ -2589,7 +2590,7 @@ def soak_chunk(task: str, scene: str, seeds: list) -> dict:
     crashes (any error but a refused non-finite action), non-finite observations or rewards, and
     pybullet connections still open once the envs are gone."""
     import gc
-    counts = dict(episodes=0, steps=0, refused=0, crashes=0, non_finite=0, leaked=0, first_crash="")
+    counts = dict(SOAK_COUNTS)
     clients = []
     for seed in seeds:
         rng = np.random.default_rng(seed)
@@ -2636,7 +2637,7 @@ def run_soak(episodes: int, workers: int, seed: int = 0, progress: bool = True) 
     per_kind = [seeds[j::len(kinds)] for j in range(len(kinds))]          # episode i: kind i mod 10
     jobs = [(*kind, part[i:i + EVAL_CHUNK]) for kind, part in zip(kinds, per_kind)
             for i in range(0, len(part), EVAL_CHUNK)]
-    total = dict(episodes=0, steps=0, refused=0, crashes=0, non_finite=0, leaked=0, first_crash="")
+    total = dict(SOAK_COUNTS)
     bar = tqdm(total=episodes, desc="soak", unit="ep", disable=not progress, file=sys.stderr)
 
     def add(part):
@@ -2755,7 +2756,7 @@ def eval_table(args) -> int:
         raise UsageError("--table runs every agent with its shipped weights: drop --agent and --weights")
     out = writable_folder(Path(args.out or "results"))
     seeds = list(range(args.seed, args.seed + args.episodes))
-    suffix = "" if args.target_size == "known" else "-size-unknown"   # the ablation's files sit beside
+    suffix = "-size-unknown" if information_rule(args) else ""   # the ablation's files sit beside
     stored = {cell: stored_cell(out / f"{'-'.join(cell)}{suffix}.csv", seeds) for cell in table_cells()}
     cells = {}
     for (agent, task, scene), rows in stored.items():
