@@ -82,6 +82,13 @@ class PhysicsClient(BulletClient):
         self._shapes, self._pid = {}, os.getpid()
         self._client = pb.connect(pb.DIRECT)
 
+    def __getattr__(self, name):
+        """BulletClient's bound call, kept: later calls (thousands per step in physics) skip the lookup."""
+        bound = super().__getattr__(name)
+        if name != "disconnect":   # BulletClient marks the client closed when disconnect is looked up
+            setattr(self, name, bound)
+        return bound
+
 
 class UsageError(Exception):
     """Bad input (an unknown agent, a missing or foreign checkpoint): one line, exit status 2."""
