@@ -994,6 +994,43 @@ def test_an_i3de_episode_on_a_fixed_seed_ends_by_its_own_choice_within_the_horiz
     assert info["terminated_by_agent"] and info["success"] and info["steps"] < of.TASKS["ip"].horizon
 
 
+PUSH_MOVE_M = 0.01       # an object displaced this far in one step was moved by the gripper
+I3DE_BURIED_SEED = 9     # a pile whose target the shipped I3DE cannot see enough of until it pushes
+I3DE_EMPTY_SEED = 0      # a pile scene without a target
+
+
+def shipped_i3de_episode(seed: int) -> tuple[list, dict]:
+    """The shipped I3DE's greedy episode on ip/cubes scene `seed`: per step, the target's seen share
+    before the step and whether the step moved an object; and the last info."""
+    agent = of.load_agent(Path(of.__file__).parent / "weights" / "i3de.pt")
+    env = of.ObjectFindingEnv("ip", "cubes")
+    obs, info = env.reset(seed=seed)
+    positions = lambda: np.array([env.sim.getBasePositionAndOrientation(o.body)[0] for o in env.objects])
+    trace, done, before = [], False, positions()
+    while not done:
+        seen = info["target_seen_fraction"]
+        obs, _, done, _, info = env.step(agent.act(obs, env.agent_view()))
+        after = positions()
+        trace.append((seen, np.linalg.norm(after - before, axis=1).max() > PUSH_MOVE_M))
+        before = after
+    env.close()
+    return trace, info
+
+
+def test_the_shipped_i3de_reveals_a_buried_target_by_pushing():
+    trace, info = shipped_i3de_episode(I3DE_BURIED_SEED)
+    first_push = next(i for i, (_, moved) in enumerate(trace) if moved)
+    assert trace[first_push][0] < 0.2                     # before any object moved: under the 20 % seen bar
+    assert info["target_present"] and info["terminated_by_agent"] and info["success"]
+    assert info["target_seen_fraction"] > 0.2             # the push uncovered it, and the agent said so
+
+
+def test_the_shipped_i3de_ends_a_scene_without_a_target_before_the_horizon():
+    trace, info = shipped_i3de_episode(I3DE_EMPTY_SEED)
+    assert not info["target_present"] and info["terminated_by_agent"] and info["success"]
+    assert len(trace) < of.TASKS["ip"].horizon
+
+
 def test_a_policy_checkpoint_runs_as_an_eval_agent(tmp_path):
     model = of.ActorCritic(71, of.PPOSettings())
     path = tmp_path / "a3de.pt"
