@@ -644,7 +644,7 @@ _box_lo = np.min([np.subtract(c, h) for h, c in GRIPPER_BOXES], 0)
 _box_hi = np.max([np.add(c, h) for h, c in GRIPPER_BOXES], 0)
 GRIPPER_CORNERS = np.round([[x, y, z] for x in (_box_lo[0], _box_hi[0]) for y in (_box_lo[1], _box_hi[1])
                             for z in (_box_lo[2], _box_hi[2])], 9)   # (8, 3) corners of the boxes' bounding box
-GRIPPER_RGBA = (0.25, 0.25, 0.28, 1)   # the outside view's ghost of the gripper
+GRIPPER_RGBA = (0.25, 0.25, 0.28, 1)   # the gripper as the outside view paints it
 
 FINGER_REACH_M = 0.038   # lateral reach of the fingers: how far a fingertip dips below the ee when rolled
 
@@ -714,6 +714,36 @@ def render_rgbd(sim, T_world_camera: np.ndarray, K: np.ndarray, width: int, heig
     depth = far_m * near_m / (far_m - (far_m - near_m) * zbuf)
     depth[zbuf >= 1.0] = 0.0
     return np.ascontiguousarray(rgb), depth.astype(np.float32)
+
+
+BOX_FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
+# corners of a box indexed as x * 4 + y * 2 + z over the sign pairs (-, +); each face listed outward-CCW
+BOX_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+
+
+def paint_gripper(rgb: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray,
+                  T_world_tool: np.ndarray) -> np.ndarray:
+    """The gripper's boxes painted into a rendered view: front faces, far to near, shaded by their slant,
+    only where the rendered scene is farther than the face (a per-face depth test is enough here)."""
+    out = rgb.copy()
+    faces = []
+    for half, centre in GRIPPER_BOXES:
+        world = (BOX_SIGNS * half + centre) @ T_world_tool[:3, :3].T + T_world_tool[:3, 3]
+        cam = (world - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]     # R^T (p - t), row-wise
+        for face in BOX_FACES:
+            quad = cam[face]
+            normal = np.cross(quad[1] - quad[0], quad[3] - quad[0])
+            if np.dot(normal, quad.mean(0)) >= 0 or (quad[:, 2] <= 1e-3).any():   # faces away, or behind
+                continue
+            faces.append((quad[:, 2].mean(), quad, abs(normal[2]) / np.linalg.norm(normal)))
+    mask = np.zeros(depth.shape, np.uint8)
+    for z, quad, facing in sorted(faces, key=lambda f: -f[0]):
+        uv = (quad @ K.T)[:, :2] / quad[:, 2:]
+        mask[:] = 0
+        cv2.fillConvexPoly(mask, np.round(uv).astype(np.int32), 1)
+        paint = (mask > 0) & ((depth == 0) | (depth > z))
+        out[paint] = (255 * np.array(GRIPPER_RGBA[:3]) * (0.6 + 0.6 * facing)).clip(0, 255).astype(np.uint8)
+    return out
 
 
 # ================================================================================================
@@ -935,7 +965,9 @@ def build_workspace(sim, s: Settings) -> tuple[int, int, int]:
 
     The wrist camera must not see the gripper: TinyRenderer draws a body without a visual shape from
     its collision shapes, so the gripper's only visual is a transparent speck behind the camera, and
-    the outside view draws a separate ghost body in its place.
+    the outside view paints the gripper in (`paint_gripper`). The ghost is a body without collision
+    shapes parked under the floor and never moved: removing it would renumber the bodies after it and
+    reshape Bullet's broadphase, so every stored episode would change.
     """
     half, thick = s.workspace_m / 2, s.wall_thickness_m
 
@@ -1364,10 +1396,12 @@ class ObjectFindingEnv(gym.Env):
         return None
 
     def outside_view(self, width: int = OUTSIDE_VIEW[0], height: int = OUTSIDE_VIEW[1]) -> np.ndarray:
-        """The scene from a fixed oblique camera, with the gripper's ghost drawn in, (H, W, 3) uint8."""
-        s, sim = self.s, self.sim
-        T_tool = self.gripper_pose()
-        sim.resetBasePositionAndOrientation(self.ghost, T_tool[:3, 3], quat_of(T_tool[:3, :3]))
+        """The scene from a fixed oblique camera with the gripper painted in, (H, W, 3) uint8.
+
+        The gripper is painted into the image rather than drawn by a body: moving even a body without
+        collision shapes reorders Bullet's broadphase, so the episode would diverge from eval's.
+        """
+        s = self.s
         eye = np.array([0.0, -1.3, 1.3]) * s.workspace_m
         forward = np.array([0.0, 0.0, 0.12 * s.workspace_m]) - eye
         forward /= np.linalg.norm(forward)
@@ -1377,9 +1411,8 @@ class ObjectFindingEnv(gym.Env):
         T[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)   # OpenCV axes: x right, y down
         T[:3, 3] = eye
         K = np.array([[height * 1.1, 0, width / 2], [0, height * 1.1, height / 2], [0, 0, 1]])
-        rgb, _ = render_rgbd(sim, T, K, width, height, 0.05, 4 * s.workspace_m)
-        sim.resetBasePositionAndOrientation(self.ghost, [0, 0, -5], [0, 0, 0, 1])
-        return rgb
+        rgb, depth = render_rgbd(self.sim, T, K, width, height, 0.05, 4 * s.workspace_m)
+        return paint_gripper(rgb, depth, T, K, self.gripper_pose())
 
     def close(self):
         if getattr(self, "sim", None) is not None:

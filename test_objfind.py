@@ -988,10 +988,13 @@ def test_demo_runs_the_shipped_a3de_by_default(tmp_path):
 I3DE_SEED = 52   # a pile the shipped I3DE pushes apart to reveal the target (the README's picture)
 
 
-def test_an_i3de_episode_on_a_fixed_seed_ends_by_its_own_choice_within_the_horizon(tmp_path):
+def test_an_i3de_demo_ends_by_its_own_choice_and_is_the_episode_eval_runs(tmp_path):
     png, _, info = of.run_demo("i3de", "ip", "cubes", I3DE_SEED, tmp_path)   # the shipped weights
     assert png.exists()
     assert info["terminated_by_agent"] and info["success"] and info["steps"] < of.TASKS["ip"].horizon
+    # drawing the outside view must not touch the physics: the picture shows eval's episode
+    row, = of.evaluate("i3de", "ip", "cubes", 1, seed=I3DE_SEED, progress=False)
+    assert (row["steps"], row["target_seen_fraction"]) == (info["steps"], round(info["target_seen_fraction"], 4))
 
 
 PUSH_MOVE_M = 0.01       # an object displaced this far in one step was moved by the gripper
