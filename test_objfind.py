@@ -967,11 +967,14 @@ def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
         assert len(capsys.readouterr().err.strip().splitlines()) == 1, args
 
 
-@pytest.mark.parametrize("name, task", [("a3de.pt", "ap"), ("a3de-large.pt", "ap-large"), ("i3de.pt", "ip")])
-def test_the_shipped_weights_load_and_act(name, task):
-    checkpoint = of.read_checkpoint(Path(of.__file__).parent / "weights" / name)
+@pytest.mark.parametrize("agent, task, name", [("a3de", "ap", "a3de.pt"), ("a3de", "ap-large", "a3de-large.pt"),
+                                               ("i3de", "ip", "i3de.pt")])
+def test_the_shipped_weights_load_and_act(agent, task, name):
+    path = of.default_weights(agent, task)
+    assert path == Path(of.__file__).resolve().parent / "weights" / name
+    checkpoint = of.read_checkpoint(path)
     assert checkpoint["obs_dim"] == 71 and checkpoint["env_steps"] > 0 and checkpoint["task"] == task
-    agent = of.load_agent(Path(of.__file__).parent / "weights" / name)
+    agent = of.load_agent(path)
     env = of.ObjectFindingEnv(task, "cubes", seed=3)
     obs, _ = env.reset()
     action = agent.act(obs, env.agent_view())
