@@ -716,9 +716,10 @@ def render_rgbd(sim, T_world_camera: np.ndarray, K: np.ndarray, width: int, heig
     return np.ascontiguousarray(rgb), depth.astype(np.float32)
 
 
-BOX_FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
-# corners of a box indexed as x * 4 + y * 2 + z over the sign pairs (-, +); each face listed outward-CCW
+# A box's 8 corners, indexed x * 4 + y * 2 + z over the signs (-, +), and its 6 faces as corner cycles
+# whose normal (second - first) x (fourth - first) points outward.
 BOX_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+BOX_FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
 
 
 def paint_gripper(rgb: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray,
@@ -733,7 +734,7 @@ def paint_gripper(rgb: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray
         for face in BOX_FACES:
             quad = cam[face]
             normal = np.cross(quad[1] - quad[0], quad[3] - quad[0])
-            if np.dot(normal, quad.mean(0)) >= 0 or (quad[:, 2] <= 1e-3).any():   # faces away, or behind
+            if np.dot(normal, quad.mean(0)) >= 0 or (quad[:, 2] <= MIN_PROJECTION_Z_M).any():   # faces away, behind
                 continue
             faces.append((quad[:, 2].mean(), quad, abs(normal[2]) / np.linalg.norm(normal)))
     mask = np.zeros(depth.shape, np.uint8)

@@ -411,6 +411,21 @@ def test_target_seen_follows_the_target_when_it_moves(ap_env):
     assert ap_env.target_seen.mean() > 1.8 * top_only           # the old bottom face is new
 
 
+def test_the_outside_view_paints_the_gripper_where_it_is_and_only_where_nothing_is_in_front():
+    K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
+    T_tool = np.eye(4)
+    T_tool[:3, 3] = [0.1, 0.0, 0.5]                       # 0.5 m ahead of the camera, 0.1 m to its right
+    rgb, empty = np.full((120, 160, 3), 255, np.uint8), np.zeros((120, 160), np.float32)
+    painted = np.any(of.paint_gripper(rgb, empty, np.eye(4), K, T_tool) != 255, axis=2)
+    v, u = np.nonzero(painted)
+    assert painted.sum() > 100 and abs(u.mean() - (80 + 100 * 0.1 / 0.45)) < 6 and abs(v.mean() - 60) < 6
+    wall = np.full_like(empty, 0.3)                       # a surface in front of the whole gripper
+    assert (of.paint_gripper(rgb, wall, np.eye(4), K, T_tool) == 255).all()
+    behind = T_tool.copy()
+    behind[2, 3] = -0.5                                   # behind the camera: nothing to paint
+    assert (of.paint_gripper(rgb, empty, np.eye(4), K, behind) == 255).all()
+
+
 @pytest.mark.parametrize("scene", of.SCENES)
 def test_every_scene_kind_builds_and_only_the_target_is_red(scene):
     env = of.ObjectFindingEnv("ap", scene)
