@@ -989,10 +989,10 @@ def test_the_shipped_weights_load_and_act(agent, task, name):
     assert path == Path(of.__file__).resolve().parent / "weights" / name
     checkpoint = of.read_checkpoint(path)
     assert checkpoint["obs_dim"] == 71 and checkpoint["env_steps"] > 0 and checkpoint["task"] == task
-    agent = of.load_agent(path)
+    policy = of.load_agent(path)
     env = of.ObjectFindingEnv(task, "cubes", seed=3)
     obs, _ = env.reset()
-    action = agent.act(obs, env.agent_view())
+    action = policy.act(obs, env.agent_view())
     assert action.shape == (6,) and np.all(np.abs(action) <= 1) and abs(action[5]) == 1.0
     assert checkpoint["model"]["obs_count"].item() > 0          # trained: the normaliser has seen batches
     env.close()
