@@ -1003,7 +1003,7 @@ def test_demo_runs_the_shipped_a3de_by_default(tmp_path):
     assert (tmp_path / "demo" / "demo-ap-cubes-a3de.png").exists()
 
 
-I3DE_SEED = 52   # a pile the shipped I3DE pushes apart to reveal the target (the README's picture)
+I3DE_SEED = 10   # a pile the shipped I3DE pushes apart to reveal the target (the README's picture)
 
 
 def test_an_i3de_demo_ends_by_its_own_choice_and_is_the_episode_eval_runs(tmp_path):
