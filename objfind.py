@@ -717,7 +717,7 @@ def render_rgbd(sim, T_world_camera: np.ndarray, K: np.ndarray, width: int, heig
 
 
 # A box's 8 corners, indexed x * 4 + y * 2 + z over the signs (-, +), and its 6 faces as corner cycles
-# whose normal (second - first) x (fourth - first) points outward.
+# whose normal (second - first) x (fourth - first) points outward; paint_gripper and box_mesh share them.
 BOX_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
 BOX_FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
 
@@ -753,11 +753,8 @@ def paint_gripper(rgb: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray
 # ================================================================================================
 
 def box_mesh(half) -> tuple[np.ndarray, np.ndarray]:
-    hx, hy, hz = half
-    v = np.array([[x, y, z] for x in (-hx, hx) for y in (-hy, hy) for z in (-hz, hz)])
-    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return v, f
+    """A box's corners and outward triangles, from the box tables above (each quad split in two)."""
+    return BOX_SIGNS * np.asarray(half, float), BOX_FACES[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)
 
 
 def prism_mesh(side: float, length: float) -> tuple[np.ndarray, np.ndarray]:
