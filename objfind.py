@@ -6,26 +6,27 @@ target among (active task) or inside piles of (interactive task) objects. Each v
 TSDF volume with a detection channel, the volume is summarised into the 71 numbers of the paper's
 Fig. 2, and an agent picks the next gripper displacement.
 
-Read top to bottom, in the order data flows:
+Read top to bottom, in the order data flows (Fig. 2: world -> images -> searcher -> state -> policy
+-> displacement -> world). The robot's side first, then the world it is simulated in, then learning:
 
     settings         Settings (Table I presets in TASKS), SCENES, PPOSettings
-    perception       detect_target, add_detector_noise
+    perception       detect_target: a CIELAB colour detector
     volume           TSDFVolume: TSDF + detection channel, carving, max weight 2
     encoder          encode_state: the volume around the gripper -> 71 values
-    simulation I     frames, gripper poses, the wrist camera, render_rgbd
-    simulation II    scenes: object meshes, make_object, piles, the target's ground-truth surface
-    simulation III   ObjectFindingEnv (a gymnasium.Env, registered as objfind/...-v0), AgentView
+    frames           gripper poses; Camera and Rig: the wrist cameras and their calibration
+    searcher         Searcher: views in, state out, an action -> the next gripper pose (no simulator)
     agents           RandomAgent, ScriptedAgent, GreedyNextBestView, two_opt, GridExhaustiveSearch
-    learning         ActorCritic, gae, ppo_update, collect_rollout, checkpoints, train
+    policy           ActorCritic, PPOAgent: A3DE and I3DE
+    world I-III      render_rgbd, the detector's noise; scenes; ObjectFindingEnv (a gymnasium.Env,
+                     registered as objfind/...-v0): physics, the wrist view, ground truth, rewards
+    learning         gae, ppo_update, collect_rollout, ppo_iteration
+    ---------------- the paper's system ends; the harness follows
+    files            read_checkpoint (every check in one place), atomic writes, logs, learning curves
+    training runs    train: worker processes, resume, checkpoints, Ctrl-C and SIGTERM
     evaluation       make_agent, run_episode, evaluate, wilson_interval, the Table II layout
     demo, bench      run_demo (PNG + MP4), run_bench (per-stage milliseconds, steps/s)
-    command line     python objfind.py demo | eval | train | bench
-
-    python objfind.py demo                      # A3DE, one episode -> PNG contact sheet + MP4
-    python objfind.py eval --agent gnbv         # paired episodes: success, steps, decision time
-    python objfind.py eval --table              # Table II beside the paper's figures
-    python objfind.py train --task ip           # PPO for I3DE, resumable -> runs/ip-cubes/
-    python objfind.py bench                     # per-stage milliseconds and env steps/s
+    soak             random episodes with hostile actions: crashes, non-finite values, leaks
+    command line     python objfind.py demo | eval | train | bench | soak
 """
 from __future__ import annotations
 
@@ -35,12 +36,14 @@ import csv
 import functools
 import os
 import re
+import shlex
 import signal
 import sys
 import tempfile
 import time
 import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 from pathlib import Path
 
 # The per-step linear algebra is tiny: BLAS threads would only fight the worker processes for cores.
@@ -232,22 +235,10 @@ TASKS = {
 SCENES = ("cubes", "fixed-primitives", "variable-primitives", "random-shapes", "object-models")
 
 
-PPO_VALID = {   # what each PPOSettings value must be; checked when settings are made, before any work
-    "hidden": (lambda v: v >= 1, "at least 1"), "batch_steps": (lambda v: v >= 1, "at least 1"),
-    "minibatch": (lambda v: v >= 1, "at least 1"), "gamma": (lambda v: 0 < v <= 1, "in (0, 1]"),
-    "entropy_coef": (lambda v: v >= 0, "at least 0"), "gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),
-    "clip": (lambda v: v > 0, "above 0"), "epochs": (lambda v: v >= 1, "at least 1"),
-    "learning_rate": (lambda v: v > 0, "above 0"), "value_coef": (lambda v: v >= 0, "at least 0"),
-    "max_grad_norm": (lambda v: v > 0, "above 0"), "reward_scale": (lambda v: v > 0, "above 0"),
-    "init_log_std": (lambda v: True, "finite"), "init_terminate_prob": (lambda v: 0 < v < 1, "in (0, 1)"),
-    "adam_eps": (lambda v: v > 0, "above 0"), "obs_clip": (lambda v: v > 0, "above 0"),
-    "checkpoint_every": (lambda v: v >= 1, "at least 1"),
-}
-
-
 @dataclass(frozen=True)
 class PPOSettings:
-    """PPO for A3DE and I3DE (Sec. III-B.4, IV-A); the paper's name beside each of its constants."""
+    """PPO for A3DE and I3DE (Sec. III-B.4, IV-A); the paper's name beside each of its constants. A new
+    field is this one line: checkpoints, `--set` and the checks below read the fields of the class."""
 
     hidden: int = 200                  # "2 hidden layers with 200 units"
     batch_steps: int = 5000            # "batch size of 5000" env steps per update
@@ -268,18 +259,35 @@ class PPOSettings:
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
 
+    limits: ClassVar[dict] = {   # a range for some fields, as (test, meaning); every field must be finite
+        "hidden": (lambda v: v >= 1, "at least 1"), "batch_steps": (lambda v: v >= 1, "at least 1"),
+        "minibatch": (lambda v: v >= 1, "at least 1"), "gamma": (lambda v: 0 < v <= 1, "in (0, 1]"),
+        "entropy_coef": (lambda v: v >= 0, "at least 0"), "gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+        "clip": (lambda v: v > 0, "above 0"), "epochs": (lambda v: v >= 1, "at least 1"),
+        "learning_rate": (lambda v: v > 0, "above 0"), "value_coef": (lambda v: v >= 0, "at least 0"),
+        "max_grad_norm": (lambda v: v > 0, "above 0"), "reward_scale": (lambda v: v > 0, "above 0"),
+        "init_terminate_prob": (lambda v: 0 < v < 1, "in (0, 1)"), "adam_eps": (lambda v: v > 0, "above 0"),
+        "obs_clip": (lambda v: v > 0, "above 0"), "checkpoint_every": (lambda v: v >= 1, "at least 1"),
+    }
+
     def __post_init__(self):
-        for name, (ok, meaning) in PPO_VALID.items():
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and ok(value)):
-                raise ValueError(f"{name}={value!r}: it must be {meaning}")
+        """Check every field, so a new one is one line here: its type, finite, and its limit if any."""
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            ok, meaning = self.limits.get(field.name, (lambda v: True, "finite"))
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if field.type in ("int", int) and not isinstance(value, int):
+                raise ValueError(f"{field.name}={value!r}: it must be a whole number")
+            if not (number and np.isfinite(value) and ok(value)):
+                raise ValueError(f"{field.name}={value!r}: it must be {meaning}")
 
 
 def ppo_settings(values: dict) -> PPOSettings:
     """PPOSettings from NAME: VALUE pairs (a checkpoint's, or --set), or a one-line UsageError."""
-    unknown = sorted(set(values) - set(PPO_VALID))
+    names = [field.name for field in dataclasses.fields(PPOSettings)]
+    unknown = sorted(set(values) - set(names))
     if unknown:
-        raise UsageError(f"unknown PPO setting {unknown[0]!r}; the settings are {', '.join(PPO_VALID)}")
+        raise UsageError(f"unknown PPO setting {unknown[0]!r}; the settings are {', '.join(names)}")
     try:
         return PPOSettings(**values)
     except ValueError as error:
@@ -287,7 +295,7 @@ def ppo_settings(values: dict) -> PPOSettings:
 
 
 # ================================================================================================
-# Perception (Sec. III-B.1, III-C): a CIELAB colour detector and the paper's detector noise.
+# Perception (Sec. III-B.1): the robot's detector, a CIELAB colour detector of the red target.
 # ================================================================================================
 
 TARGET_RGBA = (0.85, 0.05, 0.05, 1.0)
@@ -317,17 +325,6 @@ def detect_target(rgb: np.ndarray) -> np.ndarray:
     return red.astype(np.float32)
 
 
-def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, s: Settings) -> np.ndarray:
-    """Sec. III-C: true detections lose an Exp(lambda) sample; a random 2 % of pixels become false
-    positives valued Exp(lambda)."""
-    noisy = detections - detections * rng.exponential(1.0 / s.noise_rate, detections.shape)
-    n_false = int(round(s.false_positive_share * detections.size))
-    flat = noisy.reshape(-1)
-    picks = rng.choice(detections.size, n_false, replace=False)
-    flat[picks] = np.maximum(flat[picks], rng.exponential(1.0 / s.noise_rate, n_false))
-    return np.clip(noisy, 0.0, 1.0).astype(np.float32)
-
-
 # ================================================================================================
 # Volume (Sec. III-B.1): a numpy TSDF with a detection channel, carving and max weight 2.
 # ================================================================================================
@@ -335,14 +332,14 @@ def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, s: Sett
 MIN_PROJECTION_Z_M = np.float32(1e-3)   # guards the division by z; the renderer's near plane cuts depth anyway
 
 
-def surface_derivative(P: np.ndarray, axis: int) -> np.ndarray:
+def surface_derivative(points: np.ndarray, axis: int) -> np.ndarray:
     """Derivative of a point image along an image axis: the smaller of the two one-sided differences."""
-    d = np.diff(P, axis=axis)
-    pad = [(0, 0)] * P.ndim
+    steps = np.diff(points, axis=axis)
+    pad = [(0, 0)] * points.ndim
     pad[axis] = (1, 0)
-    backward = np.pad(d, pad, mode="edge")
+    backward = np.pad(steps, pad, mode="edge")
     pad[axis] = (0, 1)
-    forward = np.pad(d, pad, mode="edge")
+    forward = np.pad(steps, pad, mode="edge")
     use_forward = np.linalg.norm(forward, axis=-1) < np.linalg.norm(backward, axis=-1)
     return np.where(use_forward[..., None], forward, backward)
 
@@ -355,17 +352,17 @@ class TSDFVolume:
     hold tsdf 0 and weight 0 (Open3D's convention), so sums over the volume say how much was observed.
     """
 
-    def __init__(self, s: Settings):
-        self.voxel_m = s.voxel_m
-        self.shape = (s.voxels_per_side, s.voxels_per_side, int(round(s.volume_height_m / self.voxel_m)))
-        self.origin = np.array([-s.workspace_m / 2, -s.workspace_m / 2, 0.0])
-        self.trunc_m, self.max_weight = s.trunc_m, s.max_weight
+    def __init__(self, cfg: Settings):
+        self.voxel_m = cfg.voxel_m
+        self.shape = (cfg.voxels_per_side, cfg.voxels_per_side, int(round(cfg.volume_height_m / self.voxel_m)))
+        self.origin = np.array([-cfg.workspace_m / 2, -cfg.workspace_m / 2, 0.0])
+        self.trunc_m, self.max_weight = cfg.trunc_m, cfg.max_weight
         self.tsdf = np.zeros(self.shape, np.float32)        # (nx, ny, nz) signed distance / trunc
         self.weight = np.zeros(self.shape, np.float32)      # (nx, ny, nz) observations, at most max_weight
         self.detections = np.zeros(self.shape, np.float32)  # (nx, ny, nz) detection score near surfaces
         self.target_area = np.zeros(self.shape, np.float32)  # (nx, ny, nz) m^2 of target surface seen
-        self.detection_threshold, self.seen_min_cos = s.detection_threshold, s.seen_min_cos
-        self.outline_pixel_share = s.outline_pixel_share
+        self.detection_threshold, self.seen_min_cos = cfg.detection_threshold, cfg.seen_min_cos
+        self.outline_pixel_share = cfg.outline_pixel_share
         # Voxel centres are separable, so we keep three 1-D axes instead of an (N, 3) array: camera
         # coordinates of a sub-box then come from broadcasting, never from a matrix product per voxel.
         self.axes = [(np.arange(n, dtype=np.float32) + 0.5) * self.voxel_m + o
@@ -438,25 +435,57 @@ class TSDFVolume:
         (the paper) lets two new views overwrite what a push moved. The detection channel is averaged
         with the same weights. Returns the number of voxels observed for the first time.
         """
-        if not np.any(depth_m > 0):
+        # 1. the voxels the view sees: flat indices, their signed distance to their pixel's surface, the pixel
+        seen = self._voxels_in_view(depth_m, K, T_world_camera) if np.any(depth_m > 0) else None
+        if seen is None:
             return 0
+        flat, sdf, pixel = seen
+        tsdf, weight, det = (a.reshape(-1) for a in (self.tsdf, self.weight, self.detections))
+        w_old = weight[flat]
+        newly = int(np.count_nonzero(w_old == 0))
+        self.observed_count += newly
+        # 2. most are free space already known as free at full weight, where averaging 1 into 1 changes
+        #    nothing: they are dropped before the expensive updates
+        same = (sdf >= self.trunc_m) & (w_old == self.max_weight)
+        same[same] = tsdf[flat[same]] == 1.0
+        if same.any():
+            keep = ~same
+            flat, sdf, pixel, w_old = flat[keep], sdf[keep], pixel[keep], w_old[keep]
+        # 3. the weighted average, each view weighing 1; detections as a truncated unsigned distance (the
+        #    pixel's score fading to 0 at trunc_m), averaged alike and carved out of free space
+        w_sum = w_old + 1.0
+        tsdf[flat] = (tsdf[flat] * w_old + np.minimum(1.0, sdf * (1.0 / self.trunc_m))) / w_sum
+        det_obs = detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m)
+        det_new = (det[flat] * w_old + det_obs) / w_sum
+        det_new[sdf >= self.trunc_m] = 0.0
+        det[flat] = det_new
+        weight[flat] = np.minimum(w_sum, self.max_weight)
+        # 4. the target surface seen, for the searchers' stop rule
+        self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_new)
+        return newly
+
+    def _voxels_in_view(self, depth_m, K, T_world_camera):
+        """(flat index, signed distance, pixel) of each voxel in the frustum that projects onto a depth
+        return and lies in front of it or up to trunc_m behind; None when the frustum misses the volume.
+
+        Pixel coordinates are (fx x + cx z) / z and (fy y + cy z) / z, and x, y, z are linear in the
+        voxel centre, so each numerator is a sum of three 1-D terms broadcast over a box of voxels: one
+        full-size add per quantity instead of a 3 x 3 product per voxel. Everything stays float32.
+        """
         H, W = depth_m.shape
-        # Pixel coordinates are (fx x + cx z) / z and (fy y + cy z) / z, and x, y, z are linear in the
-        # voxel centre, so each numerator is a sum of three 1-D terms broadcast over the box: one
-        # full-size add per quantity instead of a 3 x 3 product per voxel. Everything stays float32.
-        P = (K @ T_world_camera[:3, :3].T).astype(np.float32)               # (3, 3) world -> pixel rows
+        world_to_pixel = (K @ T_world_camera[:3, :3].T).astype(np.float32)   # (3, 3) rows give u z, v z, z
         t = T_world_camera[:3, 3].astype(np.float32)
         flats, sdfs, pixels = [], [], []
         for box in self.frustum_boxes(depth_m, K, T_world_camera):
-            d = [ax[b] - t[i] for i, (ax, b) in enumerate(zip(self.axes, box))]  # 1-D offsets from the camera
+            offsets = [ax[b] - t[i] for i, (ax, b) in enumerate(zip(self.axes, box))]   # 1-D, from the camera
 
             def along_box(row):
-                return ((row[0] * d[0])[:, None, None] + (row[1] * d[1])[None, :, None]
-                        + (row[2] * d[2])[None, None, :])
+                return ((row[0] * offsets[0])[:, None, None] + (row[1] * offsets[1])[None, :, None]
+                        + (row[2] * offsets[2])[None, None, :])
 
-            z = along_box(P[2])                  # (a, b, c) depth of each voxel along the optical axis
-            u = along_box(P[0]) / z
-            v = along_box(P[1]) / z
+            z = along_box(world_to_pixel[2])     # (a, b, c) depth of each voxel along the optical axis
+            u = along_box(world_to_pixel[0]) / z
+            v = along_box(world_to_pixel[1]) / z
             valid = (z > MIN_PROJECTION_Z_M) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
             pixel = v[valid].astype(np.int32) * W + u[valid].astype(np.int32)
             depth = depth_m.reshape(-1)[pixel]
@@ -466,30 +495,8 @@ class TSDFVolume:
             sdfs.append(sdf[keep])
             pixels.append(pixel[keep])
         if not flats:
-            return 0
-        flat, sdf, pixel = np.concatenate(flats), np.concatenate(sdfs), np.concatenate(pixels)
-
-        tsdf, weight, det = (a.reshape(-1) for a in (self.tsdf, self.weight, self.detections))
-        w_old = weight[flat]
-        newly = int(np.count_nonzero(w_old == 0))
-        self.observed_count += newly
-        # Most voxels of a view are free space already known as free at full weight: averaging 1 into
-        # 1 changes nothing there, so they are dropped before the expensive updates.
-        same = (sdf >= self.trunc_m) & (w_old == self.max_weight)
-        same[same] = tsdf[flat[same]] == 1.0
-        if same.any():
-            keep = ~same
-            flat, sdf, pixel, w_old = flat[keep], sdf[keep], pixel[keep], w_old[keep]
-        w_sum = w_old + 1.0   # the weighted average, each view weighing 1
-        tsdf[flat] = (tsdf[flat] * w_old + np.minimum(1.0, sdf * (1.0 / self.trunc_m))) / w_sum
-        # detections as a truncated unsigned distance: the pixel's score, fading to 0 at trunc_m
-        det_obs = detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m)
-        det_new = (det[flat] * w_old + det_obs) / w_sum
-        det_new[sdf >= self.trunc_m] = 0.0             # carving: no detection survives in free space
-        det[flat] = det_new
-        weight[flat] = np.minimum(w_sum, self.max_weight)
-        self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_new)
-        return newly
+            return None
+        return np.concatenate(flats), np.concatenate(sdfs), np.concatenate(pixels)
 
     def _mark_target_surface(self, depth_m, detections, K, T_world_camera, flat, det_new) -> None:
         """Keep `target_area`: per voxel, the target surface area (m^2) seen in it by one view.
@@ -507,7 +514,7 @@ class TSDFVolume:
         detected = (detections > self.detection_threshold) & (depth_m > 0)
         if not detected.any():
             return
-        # The surface a pixel covers is |dP/du x dP/dv| for P the back-projected depth image, each
+        # The surface a pixel covers is |dP/du x dP/dv| for points the back-projected depth image, each
         # derivative taken towards the neighbour on the same surface (the smaller one-sided
         # difference), so pixels along the target's outline do not borrow the depth jump to the
         # background. A pixel seeing its surface more obliquely than the ground truth's limit counts
@@ -517,8 +524,8 @@ class TSDFVolume:
         # as a voxel (far views).
         H, W = depth_m.shape
         rows, cols = np.mgrid[0:H, 0:W] + 0.5
-        P = np.stack([(cols - K[0, 2]) / K[0, 0] * depth_m, (rows - K[1, 2]) / K[1, 1] * depth_m, depth_m], -1)
-        pixel_area = np.linalg.norm(np.cross(surface_derivative(P, 1), surface_derivative(P, 0)), axis=-1)
+        points = np.stack([(cols - K[0, 2]) / K[0, 0] * depth_m, (rows - K[1, 2]) / K[1, 1] * depth_m, depth_m], -1)
+        pixel_area = np.linalg.norm(np.cross(surface_derivative(points, 1), surface_derivative(points, 0)), axis=-1)
         pixel_area[pixel_area * self.seen_min_cos > (depth_m / K[0, 0]) ** 2] = 0.0
         outline = detected & ~(np.roll(detected, 1, 0) & np.roll(detected, -1, 0)
                                & np.roll(detected, 1, 1) & np.roll(detected, -1, 1))
@@ -601,50 +608,28 @@ def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, fing
 
 
 # ================================================================================================
-# Simulation I (Sec. III-B.2): frames, the floating gripper and its wrist camera.
+# Frames (Sec. III-B.2): the gripper's pose and the cameras on its wrist.
 # ================================================================================================
 
-def rotation_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+def rotation_z(angle: float) -> np.ndarray:
+    cos_a, sin_a = np.cos(angle), np.sin(angle)
+    return np.array([[cos_a, -sin_a, 0], [sin_a, cos_a, 0], [0, 0, 1.0]])
 
 
-def rotation_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+def rotation_y(angle: float) -> np.ndarray:
+    cos_a, sin_a = np.cos(angle), np.sin(angle)
+    return np.array([[cos_a, 0, sin_a], [0, 1.0, 0], [-sin_a, 0, cos_a]])
 
 
-def rotation_x(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
-
-
-def quat_of(R: np.ndarray) -> list:
-    """pybullet quaternion (x, y, z, w) of a rotation matrix."""
-    w = np.sqrt(max(1e-12, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
-    if w > 1e-3:
-        return [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w),
-                (R[1, 0] - R[0, 1]) / (4 * w), w]
-    i = int(np.argmax(np.diag(R)))
-    j, k = (i + 1) % 3, (i + 2) % 3
-    q = np.zeros(4)
-    q[i] = np.sqrt(max(1e-12, 1 + R[i, i] - R[j, j] - R[k, k])) / 2
-    q[j] = (R[j, i] + R[i, j]) / (4 * q[i])
-    q[k] = (R[k, i] + R[i, k]) / (4 * q[i])
-    q[3] = (R[k, j] - R[j, k]) / (4 * q[i])
-    return list(q)
+def rotation_x(angle: float) -> np.ndarray:
+    cos_a, sin_a = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0, 0], [0, cos_a, -sin_a], [0, sin_a, cos_a]])
 
 
 # The gripper in the tool frame (origin between the fingertips, z along the approach axis): a palm
 # and two fingers, as (half extents, centre) boxes.
 GRIPPER_BOXES = (((0.045, 0.015, 0.01), (0.0, 0.0, -0.09)),
                  ((0.006, 0.012, 0.04), (-0.032, 0.0, -0.04)), ((0.006, 0.012, 0.04), (0.032, 0.0, -0.04)))
-
-_box_lo = np.min([np.subtract(c, h) for h, c in GRIPPER_BOXES], 0)
-_box_hi = np.max([np.add(c, h) for h, c in GRIPPER_BOXES], 0)
-GRIPPER_CORNERS = np.round([[x, y, z] for x in (_box_lo[0], _box_hi[0]) for y in (_box_lo[1], _box_hi[1])
-                            for z in (_box_lo[2], _box_hi[2])], 9)   # (8, 3) corners of the boxes' bounding box
-GRIPPER_RGBA = (0.25, 0.25, 0.28, 1)   # the gripper as the outside view paints it
 
 FINGER_REACH_M = 0.038   # lateral reach of the fingers: how far a fingertip dips below the ee when rolled
 
@@ -664,48 +649,511 @@ def yaw_roll_of(R_world_tool: np.ndarray) -> tuple[float, float]:
     return float(np.arctan2(M[1, 0], M[0, 0])), float(np.arctan2(M[2, 1], M[2, 2]))
 
 
-def action_goal(T_world_tool: np.ndarray, action: np.ndarray, s: Settings) -> np.ndarray:
-    """The pose (T_world_tool) an action asks for: displacements in the yaw frame, limits applied.
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A pinhole camera in OpenCV's frame (x right, y down, z forward; depth along z), square pixels:
+    pixel (u, v) covers [u, u + 1) x [v, v + 1), so its centre is u + 0.5."""
 
-    Roll is bounded, the position stays inside the volume's box and the fingertips above the floor.
+    width: int
+    height: int
+    K: np.ndarray                # (3, 3) intrinsics
+    near_m: float = 0.0          # no depth returns closer than this ...
+    far_m: float = np.inf        # ... or farther
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """The wrist cameras as the robot knows them: a depth camera, an RGB camera (the same object when one
+    RGB-D camera gives both), and where they sit."""
+
+    depth: Camera
+    rgb: Camera
+    T_tool_depth: np.ndarray     # (4, 4) the depth camera in the tool frame: the hand-eye calibration
+    T_depth_rgb: np.ndarray      # (4, 4) the RGB camera in the depth camera's frame: the extrinsics
+
+    def detections_in_depth_image(self, detections: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+        """The RGB image's (H', W') detection scores at each depth pixel, (H, W): the pixel back-projected
+        by its depth, moved into the RGB camera, and the score read where it projects (0 off the image)."""
+        if self.rgb is self.depth and np.array_equal(self.T_depth_rgb, np.eye(4)):
+            return detections
+        H, W = depth_m.shape
+        rows, cols = np.mgrid[0:H, 0:W] + 0.5
+        K, K_rgb = self.depth.K, self.rgb.K
+        points = np.stack([(cols - K[0, 2]) / K[0, 0] * depth_m, (rows - K[1, 2]) / K[1, 1] * depth_m, depth_m], -1)
+        T_rgb_depth = np.linalg.inv(self.T_depth_rgb)
+        in_rgb = points @ T_rgb_depth[:3, :3].T + T_rgb_depth[:3, 3]
+        z = np.where(in_rgb[..., 2] > MIN_PROJECTION_Z_M, in_rgb[..., 2], np.inf)
+        u = np.floor(K_rgb[0, 0] * in_rgb[..., 0] / z + K_rgb[0, 2]).astype(np.int64)
+        v = np.floor(K_rgb[1, 1] * in_rgb[..., 1] / z + K_rgb[1, 2]).astype(np.int64)
+        hit = (depth_m > 0) & np.isfinite(z) & (u >= 0) & (u < self.rgb.width) & (v >= 0) & (v < self.rgb.height)
+        out = np.zeros(depth_m.shape, np.float32)
+        out[hit] = detections[v[hit], u[hit]]
+        return out
+
+
+def wrist_rig(cfg: Settings) -> Rig:
+    """The simulated wrist camera: one RGB-D camera on the approach axis, camera_offset_m behind the
+    fingertips. The tool frame already has OpenCV's axes (x to the gripper's right, y backward, z along
+    the approach axis), so the camera looks between the fingers with the gripper's front at the top."""
+    f = (cfg.image_height / 2) / np.tan(np.radians(cfg.fov_y_deg) / 2)
+    K = np.array([[f, 0, cfg.image_width / 2], [0, f, cfg.image_height / 2], [0, 0, 1.0]])
+    camera = Camera(cfg.image_width, cfg.image_height, K, cfg.near_m, cfg.far_m)
+    T_tool_depth = np.eye(4)
+    T_tool_depth[2, 3] = -cfg.camera_offset_m
+    return Rig(camera, camera, T_tool_depth, np.eye(4))
+
+
+# ================================================================================================
+# The searcher (Sec. III-B, Fig. 2): what the robot holds and computes, and nothing of the simulator.
+# Views in (depth, detections or RGB, the camera's pose) -> the volume -> the 71-value state; a
+# policy's action -> the next gripper pose. The same class runs on simulated and on recorded frames.
+# ================================================================================================
+
+class Searcher:
+    """The robot's side of Fig. 2: its wrist rig, the volume its views fill, the encoder, the told target
+    size, the stop threshold and the limits of one step. It opens no physics client."""
+
+    def __init__(self, cfg: Settings, rig: Rig | None = None):
+        self.rig = rig or wrist_rig(cfg)
+        self.volume = TSDFVolume(cfg)
+        self.crop_m, self.seen_threshold = cfg.crop_m, cfg.seen_threshold
+        self.detection_threshold = cfg.detection_threshold
+        self.workspace_m, self.ceiling_m = cfg.workspace_m, cfg.ceiling_m           # the box it moves in
+        self.max_step_m, self.max_turn_rad = cfg.max_step_m, cfg.max_turn_rad       # one step's reach
+        self.max_roll_rad, self.fingertip_clearance_m = cfg.max_roll_rad, cfg.fingertip_clearance_m
+        self.reset(cfg.nominal_target_area_m2)
+
+    def reset(self, target_area_m2: float) -> None:
+        """A new search, told the target's surface area (m^2), or the nominal cube's if not told its size."""
+        self.volume.reset()
+        self.target_area_m2 = target_area_m2
+        self.views = 0
+        self._state_of = (None, None)   # (views, pose) -> state: an agent asking again costs nothing
+
+    def camera_pose(self, T_world_tool: np.ndarray) -> np.ndarray:
+        """T_world_depth, the depth camera's pose for a gripper pose, through the hand-eye calibration."""
+        return T_world_tool @ self.rig.T_tool_depth
+
+    def observe(self, depth_m: np.ndarray, T_world_depth: np.ndarray, detections: np.ndarray | None = None,
+                rgb: np.ndarray | None = None) -> int:
+        """Fuse one view: (H, W) depth in metres along z (0: no return) and the detector's scores in [0, 1]
+        over the RGB image, or that (H', W', 3) image for our colour detector. Returns the voxels seen first."""
+        if detections is None:
+            detections = detect_target(rgb)
+        detections = self.rig.detections_in_depth_image(detections, depth_m)
+        self.views += 1
+        return self.volume.integrate(depth_m, detections, self.rig.depth.K, T_world_depth)
+
+    def state(self, T_world_tool: np.ndarray) -> np.ndarray:
+        """The 71 values of Fig. 2 around a gripper pose; the detection sum in units of the told target's
+        surface, counted in voxel faces."""
+        key = (self.views, T_world_tool.tobytes())
+        if self._state_of[0] != key:
+            yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
+            self._state_of = (key, encode_state(self.volume, T_world_tool[:3, 3], yaw, roll, T_world_tool[2, 3],
+                                                self.crop_m, self.target_area_m2 / self.volume.voxel_m ** 2))
+        return self._state_of[1].copy()
+
+    def perceived_target_share(self) -> float:
+        """Seen target area over the told target's: the searchers' stop rule (the world's truth judges)."""
+        return self.volume.seen_target_area_m2() / self.target_area_m2
+
+    def goal_pose(self, T_world_tool: np.ndarray, action: np.ndarray) -> np.ndarray:
+        """The pose (T_world_tool) an action asks for: dx, dy, dz in the yaw frame times max_step_m, roll
+        and yaw times max_turn_rad; roll bounded, the position inside the volume's box, fingertips above
+        the floor."""
+        yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
+        roll = float(np.clip(roll + action[3] * self.max_turn_rad, -self.max_roll_rad, self.max_roll_rad))
+        yaw = float(yaw + action[4] * self.max_turn_rad)
+        half = self.workspace_m / 2
+        floor_z = self.fingertip_clearance_m + FINGER_REACH_M * abs(np.sin(roll))
+        goal = np.eye(4)
+        goal[:3, :3] = gripper_rotation(yaw, roll)
+        goal[:3, 3] = np.clip(T_world_tool[:3, 3] + rotation_z(yaw) @ (np.asarray(action[:3]) * self.max_step_m),
+                              [-half, -half, floor_z], [half, half, self.ceiling_m])
+        return goal
+
+
+# ================================================================================================
+# Agents (Sec. IV-B): each decides from the robot's Searcher and the gripper's pose alone, with
+# reset(searcher, T_world_tool) and act(searcher, T_world_tool) -> an action in Box(-1, 1, (6,)):
+# dx, dy, dz, roll, yaw, and terminate when the sixth value is above 0. Two simple agents and the
+# two baselines; the learned policies follow in the next section.
+# ================================================================================================
+
+ACTION_MOVES = 5        # dx, dy, dz, roll, yaw; then terminate
+ACTION_SIZE = ACTION_MOVES + 1
+ACTION_NAMES = ("dx", "dy", "dz", "roll", "yaw", "terminate")
+
+
+def stop_action() -> np.ndarray:
+    """The action that terminates: stay, and claim the target was found (or that there is none)."""
+    action = np.zeros(ACTION_SIZE, np.float32)
+    action[ACTION_MOVES] = 1.0
+    return action
+
+
+class RandomAgent:
+    """Uniform random displacements; terminates with a small probability per step."""
+
+    terminate_prob = 0.02   # about 50 steps per episode, well inside the horizon
+
+    def __init__(self, cfg: Settings, seed: int | None = None):
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self, searcher: Searcher, T_world_tool: np.ndarray) -> None:
+        pass
+
+    def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
+        action = self.rng.uniform(-1, 1, ACTION_SIZE).astype(np.float32)
+        action[ACTION_MOVES] = 1.0 if self.rng.random() < self.terminate_prob else -1.0
+        return action
+
+
+class ScriptedAgent:
+    """A hand-written searcher: rise to the ceiling, tilt, then turn on the spot while drifting to the
+    workspace centre; terminate once the volume holds a perceived target or after one full turn."""
+
+    tilt_rad = 0.6   # looks past the walls' tops from the ceiling
+
+    def __init__(self, cfg: Settings, seed: int | None = None):
+        pass
+
+    def reset(self, searcher: Searcher, T_world_tool: np.ndarray) -> None:
+        self.turned_rad = 0.0
+
+    def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
+        T = T_world_tool
+        yaw, roll = yaw_roll_of(T[:3, :3])
+        if searcher.perceived_target_share() >= searcher.seen_threshold or self.turned_rad >= 2 * np.pi:
+            return stop_action()
+        action = np.zeros(ACTION_SIZE, np.float32)
+        action[ACTION_MOVES] = -1.0
+        to_centre = rotation_z(yaw).T @ np.r_[-T[0, 3], -T[1, 3], searcher.ceiling_m - T[2, 3]]
+        action[:3] = np.clip(to_centre / searcher.max_step_m, -1, 1)
+        action[3] = np.clip((self.tilt_rad - roll) / searcher.max_turn_rad, -1, 1)
+        if T[2, 3] > searcher.ceiling_m - searcher.max_step_m:      # high enough: start turning
+            action[4] = 1.0
+            self.turned_rad += searcher.max_turn_rad
+        return action
+
+
+class GreedyNextBestView:
+    """GNBV, the active baseline (Sec. IV-B.1): one-step greedy next-best-view.
+
+    Samples n poses reachable in one action and moves to the one that would newly observe the most
+    voxels, found by casting rays through the local volume with unobserved space assumed empty. Once
+    the target is detected it instead moves to the pose that brings the target closest to the image
+    centre. Terminates above 97 % explored or 20 % of the target perceived.
     """
-    yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
-    roll = float(np.clip(roll + action[3] * s.max_turn_rad, -s.max_roll_rad, s.max_roll_rad))
-    yaw = float(yaw + action[4] * s.max_turn_rad)
-    half = s.workspace_m / 2
-    floor_z = s.fingertip_clearance_m + FINGER_REACH_M * abs(np.sin(roll))
-    goal = np.eye(4)
-    goal[:3, :3] = gripper_rotation(yaw, roll)
-    goal[:3, 3] = np.clip(T_world_tool[:3, 3] + rotation_z(yaw) @ (np.asarray(action[:3]) * s.max_step_m),
-                          [-half, -half, floor_z], [half, half, s.ceiling_m])
-    return goal
+
+    def __init__(self, cfg: Settings, seed: int | None = None):
+        self.rng = np.random.default_rng(seed)
+        self.samples, self.rays, self.min_detections = cfg.gnbv_samples, cfg.gnbv_rays, cfg.gnbv_min_detections
+        self.explored_to_stop = cfg.gnbv_explored_to_stop
+        self.stall_voxels, self.stall_steps = cfg.gnbv_stall_voxels, cfg.gnbv_stall_steps
+        # the workspace's floor and walls, which rays hit: the robot knows the box it searches
+        self.wall_thickness_m, self.wall_height_m = cfg.wall_thickness_m, cfg.wall_height_m
+
+    def reset(self, searcher: Searcher, T_world_tool: np.ndarray) -> None:
+        self.stalled = 0
+        camera = searcher.rig.depth
+        K = camera.K
+        u = (np.arange(self.rays[0]) + 0.5) * camera.width / self.rays[0]    # a subsampled image
+        v = (np.arange(self.rays[1]) + 0.5) * camera.height / self.rays[1]
+        uu, vv = np.meshgrid(u, v)
+        rays = np.stack([(uu.ravel() - K[0, 2]) / K[0, 0], (vv.ravel() - K[1, 2]) / K[1, 1],
+                         np.ones(uu.size)], 1)                                # (R, 3) at depth 1
+        depths = np.arange(camera.near_m, camera.far_m, searcher.volume.voxel_m)   # one sample per voxel
+        self.ray_points = (rays[:, None, :] * depths[None, :, None]).astype(np.float32)   # (R, D, 3)
+
+    def candidate_actions(self) -> np.ndarray:
+        """(n, 6) random actions that do not terminate: the poses one step away."""
+        actions = self.rng.uniform(-1, 1, (self.samples, ACTION_SIZE))
+        actions[:, ACTION_MOVES] = -1.0
+        return actions
+
+    def perceived_target_centre(self, searcher: Searcher):
+        """World centre of the detection voxels above the threshold, or None when too few agree."""
+        volume = searcher.volume
+        hits = np.argwhere(volume.detections > searcher.detection_threshold)
+        if len(hits) < self.min_detections:   # a lone voxel is more likely noise than the target
+            return None
+        return volume.origin + (hits.mean(axis=0) + 0.5) * volume.voxel_m
+
+    def newly_observed(self, searcher: Searcher, T_cameras: np.ndarray, ee_xyz) -> np.ndarray:
+        """For each (4, 4) camera pose, the unobserved voxels its rays would reach, counted once each.
+
+        A ray stops at the first observed voxel behind a surface (TSDF below 0), the floor or a wall;
+        unobserved voxels are taken as empty, and voxels outside the crop around the gripper are
+        not known to the agent, so they neither count nor block. A ray that hits nothing (over a
+        wall, past the floor) brings no depth, and the camera learns nothing along it: it counts 0.
+        """
+        volume = searcher.volume
+        observed = volume.weight.reshape(-1) > 0
+        occupied = observed & (volume.tsdf.reshape(-1) < 0)
+        counts = np.zeros(len(T_cameras), np.int64)
+        shape = np.array(volume.shape)
+        half, floor_half = searcher.workspace_m / 2, searcher.workspace_m / 2 + 2 * self.wall_thickness_m
+        for c, T in enumerate(T_cameras):
+            world = self.ray_points @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)  # (R, D, 3)
+            index = np.floor((world - volume.origin) / volume.voxel_m).astype(np.int64)
+            inside = np.all((index >= 0) & (index < shape), axis=-1)
+            inside &= np.all(np.abs(world[..., :2] - ee_xyz[:2]) <= searcher.crop_m / 2, axis=-1)
+            flat = (index[..., 0] * shape[1] + index[..., 1]) * shape[2] + index[..., 2]
+            flat = np.where(inside, flat, 0)
+            out = np.abs(world[..., :2]).max(axis=-1)
+            floor = (world[..., 2] < 0) & (out <= floor_half)
+            wall = (out > half) & (out <= floor_half) & (world[..., 2] < self.wall_height_m)
+            blocked = (inside & occupied[flat]) | floor | wall
+            open_ray = ~np.logical_or.accumulate(blocked, axis=1)      # before the first blocker
+            returns = blocked.any(axis=1)                              # (R,) the ray brings a depth
+            new = open_ray & inside & ~observed[flat] & returns[:, None]
+            counts[c] = len(np.unique(flat[new]))
+        return counts
+
+    def centring_error(self, T_cameras: np.ndarray, target_xyz: np.ndarray, K: np.ndarray) -> np.ndarray:
+        """Pixel distance of the target's projection from the image centre, per camera (inf if behind)."""
+        errors = np.full(len(T_cameras), np.inf)
+        for c, T in enumerate(T_cameras):
+            p = T[:3, :3].T @ (target_xyz - T[:3, 3])
+            if p[2] > 1e-3:
+                errors[c] = np.hypot(K[0, 0] * p[0] / p[2], K[1, 1] * p[1] / p[2])
+        return errors
+
+    def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
+        if (searcher.volume.explored_fraction() > self.explored_to_stop or self.stalled >= self.stall_steps
+                or searcher.perceived_target_share() > searcher.seen_threshold):
+            return stop_action()
+        actions = self.candidate_actions()
+        cameras = np.stack([searcher.camera_pose(searcher.goal_pose(T_world_tool, a)) for a in actions])
+        target = self.perceived_target_centre(searcher)
+        if target is not None:
+            best = int(np.argmin(self.centring_error(cameras, target, searcher.rig.depth.K)))
+        else:
+            gains = self.newly_observed(searcher, cameras, T_world_tool[:3, 3])
+            best = int(np.argmax(gains))
+            self.stalled = self.stalled + 1 if gains[best] < self.stall_voxels else 0
+        return actions[best].astype(np.float32)
 
 
-def camera_pose(T_world_tool: np.ndarray, s: Settings) -> np.ndarray:
-    """T_world_camera: maps points in the wrist camera's frame to the world.
+def tour_length(points: np.ndarray, tour: np.ndarray, closed: bool = True) -> float:
+    legs = np.linalg.norm(np.diff(points[tour], axis=0), axis=1).sum()
+    return float(legs + (np.linalg.norm(points[tour[-1]] - points[tour[0]]) if closed else 0.0))
 
-    The camera frame is OpenCV's: x right, y down, z forward along the optical axis; depth is measured
-    along z, not along the ray. The tool frame already has those axes (x to the gripper's right, y
-    backward, z along the approach axis), so the camera is the tool frame moved camera_offset_m back
-    from the fingertips: it looks between the fingers, and the image's top is the gripper's front.
+
+def two_opt(points: np.ndarray, tour: np.ndarray, closed: bool = True) -> np.ndarray:
+    """Improve a tour by 2-opt moves (Croes 1958) until none shortens it; returns a new permutation.
+
+    A move reverses tour[i:j + 1], replacing edges (a, b) and (c, d) by (a, c) and (b, d). The gain
+    of every (i, j) pair is computed at once as an (n, n) array, and the best move is applied. With
+    closed=False the tour is a path whose first point stays first (the start of a search route).
     """
-    T = T_world_tool.copy()
-    T[:3, 3] = T_world_tool[:3, 3] - s.camera_offset_m * T_world_tool[:3, 2]
-    return T
+    tour = np.array(tour)
+    n = len(tour)
+    while True:
+        p = points[tour]
+        nxt = np.roll(p, -1, axis=0)                    # d after c: wraps for a closed tour
+        dist = lambda x, y: np.linalg.norm(x - y, axis=-1)
+        a, b = p[:-1][:, None], p[1:][:, None]          # edge (a, b) = (tour[i-1], tour[i]), i = 1..n-1
+        c, d = p[None, 1:], nxt[None, 1:]               # edge (c, d) = (tour[j], tour[j+1]), j = 1..n-1
+        gain = dist(a, b) + dist(c, d) - dist(a, c) - dist(b, d)
+        if not closed:
+            gain[:, -1] = (dist(a, b) - dist(a, c))[:, -1]   # the path's end: no edge leaves it
+        i, j = np.meshgrid(np.arange(1, n), np.arange(1, n), indexing="ij")
+        gain[(j <= i) | ((i == 1) & (j == n - 1) & closed)] = 0.0
+        best = np.unravel_index(np.argmax(gain), gain.shape)
+        if gain[best] <= 1e-12:
+            return tour
+        i, j = best[0] + 1, best[1] + 1
+        tour[i:j + 1] = tour[i:j + 1][::-1].copy()
 
 
-def intrinsics(s: Settings) -> np.ndarray:
-    """K, 3 x 3, square pixels; pixel (u, v) covers [u, u + 1) so its centre is u + 0.5."""
-    f = (s.image_height / 2) / np.tan(np.radians(s.fov_y_deg) / 2)
-    return np.array([[f, 0, s.image_width / 2], [0, f, s.image_height / 2], [0, 0, 1.0]])
+class GridExhaustiveSearch:
+    """GES, the interactive baseline (Sec. IV-B.2): sweep a grid at a fixed low height, pushing.
+
+    Nodes one max translation apart cover the workspace just above the lowest layer of objects, so
+    the fingers push whatever lies on top of another object. The route from the start is nearest
+    neighbour improved by 2-opt. Stops above 20 % of the target perceived, or at the end of the
+    grid, where it claims there is no target.
+    """
+
+    node_tol_m = 0.01   # a node counts as reached within this distance
+
+    def __init__(self, cfg: Settings, seed: int | None = None):
+        self.height_m = cfg.object_size_m + cfg.ges_clearance_m     # fingertips just above the lowest cubes
+        self.tries_per_node = cfg.ges_tries_per_node
+
+    def reset(self, searcher: Searcher, T_world_tool: np.ndarray) -> None:
+        spacing, width = searcher.max_step_m, searcher.workspace_m
+        n = int(round(width / spacing))
+        axis = (np.arange(n) + 0.5) * spacing - width / 2
+        self.nodes = np.stack(np.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
+        start = T_world_tool[:2, 3]
+        tour = self.nearest_neighbour(self.nodes, int(np.argmin(np.linalg.norm(self.nodes - start, axis=1))))
+        self.route = two_opt(self.nodes, tour, closed=False)
+        self.next, self.tries = 0, 0
+
+    @staticmethod
+    def nearest_neighbour(points: np.ndarray, start: int) -> np.ndarray:
+        tour, left = [start], np.ones(len(points), bool)
+        left[start] = False
+        while left.any():
+            d = np.where(left, np.linalg.norm(points - points[tour[-1]], axis=1), np.inf)
+            tour.append(int(np.argmin(d)))
+            left[tour[-1]] = False
+        return np.array(tour)
+
+    def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
+        T = T_world_tool
+        yaw, roll = yaw_roll_of(T[:3, :3])
+        while self.next < len(self.route):            # skip the nodes reached or given up
+            offset = np.r_[self.nodes[self.route[self.next]], self.height_m] - T[:3, 3]
+            if np.linalg.norm(offset[:2]) > self.node_tol_m and self.tries < self.tries_per_node:
+                break
+            self.next, self.tries = self.next + 1, 0
+        if searcher.perceived_target_share() > searcher.seen_threshold or self.next >= len(self.route):
+            return stop_action()
+        self.tries += abs(offset[2]) < self.node_tol_m           # only count tries at the sweep height
+        step = rotation_z(yaw).T @ offset / searcher.max_step_m
+        action = np.zeros(ACTION_SIZE, np.float32)
+        action[:3] = np.clip(step, -1, 1)
+        action[3] = np.clip(-roll / searcher.max_turn_rad, -1, 1)
+        action[ACTION_MOVES] = -1.0
+        return action
 
 
-def render_rgbd(sim, T_world_camera: np.ndarray, K: np.ndarray, width: int, height: int,
-                near_m: float, far_m: float) -> tuple[np.ndarray, np.ndarray]:
+# ================================================================================================
+# The policy (Sec. III-B.4): A3DE and I3DE, an actor-critic MLP on the 71 values, as an agent.
+# ================================================================================================
+
+class ActorCritic(nn.Module):
+    """Actor and critic MLPs (2 x 200, tanh). The actor gives the means of a Gaussian over the five
+    displacements (state-independent std) and the logit of a Bernoulli "terminate".
+
+    Both see the observation standardised by a running mean and variance kept in buffers, so they are
+    saved with the weights: the 71 values span scales from 1e-3 (a far bin) to 1 (the roll).
+    """
+
+    moves = ACTION_MOVES
+
+    def __init__(self, obs_dim: int, ppo: PPOSettings):
+        super().__init__()
+        self.obs_clip = ppo.obs_clip
+        self.register_buffer("obs_mean", torch.zeros(obs_dim))
+        self.register_buffer("obs_var", torch.ones(obs_dim))
+        self.register_buffer("obs_count", torch.tensor(0.0))
+        def mlp(out: int) -> nn.Sequential:
+            return nn.Sequential(nn.Linear(obs_dim, ppo.hidden), nn.Tanh(), nn.Linear(ppo.hidden, ppo.hidden),
+                                 nn.Tanh(), nn.Linear(ppo.hidden, out))
+        self.actor, self.critic = mlp(self.moves + 1), mlp(1)
+        self.log_std = nn.Parameter(torch.full((self.moves,), ppo.init_log_std))
+        with torch.no_grad():   # small initial means; a rarely terminating start
+            self.actor[-1].weight.mul_(0.01)
+            self.actor[-1].bias.zero_()
+            self.actor[-1].bias[-1] = torch.logit(torch.tensor(ppo.init_terminate_prob))
+
+    @torch.no_grad()
+    def reset_terminate(self, prob: float) -> None:
+        """Make the terminate head say `prob` in every state, forgetting when to stop; moves are kept."""
+        self.actor[-1].weight[-1].zero_()
+        self.actor[-1].bias[-1] = torch.logit(torch.tensor(prob))
+
+    def normalise(self, obs: torch.Tensor) -> torch.Tensor:
+        return ((obs - self.obs_mean) / (self.obs_var + 1e-8).sqrt()).clamp(-self.obs_clip, self.obs_clip)
+
+    @torch.no_grad()
+    def update_obs_stats(self, obs: torch.Tensor) -> None:
+        """Merge a batch's mean and variance into the running ones (the parallel formula of Chan,
+        Golub and LeVeque 1979)."""
+        n, mean, var = len(obs), obs.mean(0), obs.var(0, unbiased=False)
+        total = self.obs_count + n
+        delta = mean - self.obs_mean
+        self.obs_var.copy_((self.obs_var * self.obs_count + var * n + delta ** 2 * self.obs_count * n / total) / total)
+        self.obs_mean.add_(delta * n / total)
+        self.obs_count.copy_(total)
+
+    def actor_output(self, obs: torch.Tensor) -> torch.Tensor:
+        """(N, 6): the Gaussian's five means, then the terminate logit."""
+        return self.actor(self.normalise(obs))
+
+    def distributions(self, obs: torch.Tensor):
+        out = self.actor_output(obs)
+        return (torch.distributions.Normal(out[:, :self.moves], self.log_std.exp()),
+                torch.distributions.Bernoulli(logits=out[:, self.moves]))
+
+    def value(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.critic(self.normalise(obs))[:, 0]
+
+    def evaluate(self, obs: torch.Tensor, raw: torch.Tensor):
+        """Log-probability and entropy of raw actions (5 displacements, terminate bit) under the policy."""
+        move, stop = self.distributions(obs)
+        logp = move.log_prob(raw[:, :self.moves]).sum(1) + stop.log_prob(raw[:, self.moves])
+        return logp, move.entropy().sum(1) + stop.entropy()
+
+
+def env_actions(raw: np.ndarray) -> np.ndarray:
+    """Raw policy samples -> the env's Box: displacements clipped to [-1, 1], terminate as +-1."""
+    moves, stop = np.clip(raw[:, :ACTION_MOVES], -1, 1), np.where(raw[:, ACTION_MOVES:] > 0.5, 1.0, -1.0)
+    return np.concatenate([moves, stop], 1).astype(np.float32)
+
+
+class PPOAgent:
+    """A trained policy as an agent for eval and demo: the Gaussian's mean, terminate when p > 0.5."""
+
+    def __init__(self, checkpoint: dict):
+        self.model = ActorCritic(checkpoint["obs_dim"], ppo_settings(checkpoint["settings"]))
+        self.model.load_state_dict(checkpoint["model"])
+        self.model.eval()
+
+    def reset(self, searcher: Searcher, T_world_tool: np.ndarray) -> None:
+        pass
+
+    def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
+        return self.decide(searcher.state(T_world_tool))
+
+    def decide(self, obs: np.ndarray) -> np.ndarray:
+        """The action for a (71,) state: the Gaussian's mean, terminate when its probability is above 0.5."""
+        with torch.no_grad():
+            out = self.model.actor_output(torch.as_tensor(obs, dtype=torch.float32)[None]).numpy()
+        out[:, -1] = out[:, -1] > 0.0   # p > 0.5
+        return env_actions(out)[0]
+
+
+# ================================================================================================
+# The world I (Sec. III-B.2, III-C): what the simulator adds to the robot's side. The wrist view
+# rendered by TinyRenderer, the detector's noise, and the gripper painted into an outside view.
+# ================================================================================================
+
+def quat_of(R: np.ndarray) -> list:
+    """pybullet quaternion (x, y, z, w) of a rotation matrix."""
+    w = np.sqrt(max(1e-12, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
+    if w > 1e-3:
+        return [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w),
+                (R[1, 0] - R[0, 1]) / (4 * w), w]
+    i = int(np.argmax(np.diag(R)))
+    j, k = (i + 1) % 3, (i + 2) % 3
+    q = np.zeros(4)
+    q[i] = np.sqrt(max(1e-12, 1 + R[i, i] - R[j, j] - R[k, k])) / 2
+    q[j] = (R[j, i] + R[i, j]) / (4 * q[i])
+    q[k] = (R[k, i] + R[i, k]) / (4 * q[i])
+    q[3] = (R[k, j] - R[j, k]) / (4 * q[i])
+    return list(q)
+
+
+_box_lo = np.min([np.subtract(c, h) for h, c in GRIPPER_BOXES], 0)
+_box_hi = np.max([np.add(c, h) for h, c in GRIPPER_BOXES], 0)
+GRIPPER_CORNERS = np.round([[x, y, z] for x in (_box_lo[0], _box_hi[0]) for y in (_box_lo[1], _box_hi[1])
+                            for z in (_box_lo[2], _box_hi[2])], 9)   # (8, 3) corners of the boxes' bounding box
+GRIPPER_RGBA = (0.25, 0.25, 0.28, 1)   # the gripper as the outside view paints it
+
+
+def render_rgbd(sim, T_world_camera: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """TinyRenderer RGB (H, W, 3) uint8 and depth (H, W) metres along z, 0 where nothing was hit."""
+    width, height, near_m, far_m = camera.width, camera.height, camera.near_m, camera.far_m
     T_gl = T_world_camera @ np.diag([1.0, -1.0, -1.0, 1.0])   # OpenGL cameras look down -z, y up
     view = np.linalg.inv(T_gl).T.reshape(-1)                  # pybullet wants column-major
-    fov_y = np.degrees(2 * np.arctan(height / 2 / K[1, 1]))
+    fov_y = np.degrees(2 * np.arctan(height / 2 / camera.K[1, 1]))
     proj = pb.computeProjectionMatrixFOV(fov_y, width / height, near_m, far_m)
     _, _, rgba, zbuf, _ = sim.getCameraImage(width, height, view, proj, renderer=pb.ER_TINY_RENDERER,
                                             flags=pb.ER_NO_SEGMENTATION_MASK, shadow=0)
@@ -714,6 +1162,17 @@ def render_rgbd(sim, T_world_camera: np.ndarray, K: np.ndarray, width: int, heig
     depth = far_m * near_m / (far_m - (far_m - near_m) * zbuf)
     depth[zbuf >= 1.0] = 0.0
     return np.ascontiguousarray(rgb), depth.astype(np.float32)
+
+
+def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, cfg: Settings) -> np.ndarray:
+    """Sec. III-C: true detections lose an Exp(lambda) sample; a random 2 % of pixels become false
+    positives valued Exp(lambda)."""
+    noisy = detections - detections * rng.exponential(1.0 / cfg.noise_rate, detections.shape)
+    n_false = int(round(cfg.false_positive_share * detections.size))
+    flat = noisy.reshape(-1)
+    picks = rng.choice(detections.size, n_false, replace=False)
+    flat[picks] = np.maximum(flat[picks], rng.exponential(1.0 / cfg.noise_rate, n_false))
+    return np.clip(noisy, 0.0, 1.0).astype(np.float32)
 
 
 # A box's 8 corners, indexed x * 4 + y * 2 + z over the signs (-, +), and its 6 faces as corner cycles
@@ -748,7 +1207,7 @@ def paint_gripper(rgb: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray
 
 
 # ================================================================================================
-# Simulation II (Sec. III-C, Table I): scenes. Object meshes, the five scene kinds, piles, and the
+# The world II (Sec. III-C, Table I): scenes. Object meshes, the five scene kinds, piles, and the
 # target's ground-truth surface (the points that decide "seen"; never shown to an agent).
 # ================================================================================================
 
@@ -876,7 +1335,7 @@ def exterior_surface(urdf_path: str, scale: float, min_cos: float, candidates: i
                 T = np.eye(4)
                 T[:3, :3] = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], 1)
                 T[:3, 3] = d * distance
-                _, depth = render_rgbd(sim, T, K, pixels, pixels, distance - 2 * radius, distance + 2 * radius)
+                _, depth = render_rgbd(sim, T, Camera(pixels, pixels, K, distance - 2 * radius, distance + 2 * radius))
                 cam = (points - T[:3, 3]) @ T[:3, :3]
                 u = np.clip((K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2]).astype(int), 0, pixels - 1)
                 v = np.clip((K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]).astype(int), 0, pixels - 1)
@@ -914,14 +1373,14 @@ class SceneObject:
     model: tuple | None = None   # (URDF path, scale) of a mesh model; None for a convex primitive
 
 
-def make_object(sim, scene: str, s: Settings, rng: np.random.Generator, rgba) -> SceneObject:
+def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) -> SceneObject:
     """One object of a scene kind (primitives about object_size_m across) created at the origin, to be placed."""
     kind = "cube" if scene == "cubes" else None
     if scene in ("fixed-primitives", "variable-primitives"):
         kind = ("cube", "cuboid", "cylinder", "prism")[rng.integers(4)]
     if kind is not None:
-        scale = rng.uniform(*s.variable_scale) if scene == "variable-primitives" else 1.0
-        h = s.object_size_m * scale / 2
+        scale = rng.uniform(*cfg.variable_scale) if scene == "variable-primitives" else 1.0
+        h = cfg.object_size_m * scale / 2
         if kind == "cube":
             (v, f), col = box_mesh((h, h, h)), dict(shapeType=pb.GEOM_BOX, halfExtents=[h, h, h])
             vis = dict(col)
@@ -937,7 +1396,7 @@ def make_object(sim, scene: str, s: Settings, rng: np.random.Generator, rgba) ->
             v, f = prism_mesh(2.2 * h, 2 * h)
             col = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist())
             vis = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist(), indices=f.reshape(-1).tolist())
-        body = sim.createMultiBody(s.object_mass_kg, sim.createCollisionShape(**col),
+        body = sim.createMultiBody(cfg.object_mass_kg, sim.createCollisionShape(**col),
                                   sim.createVisualShape(**vis, rgbaColor=rgba),
                                   useMaximalCoordinates=True)
     else:
@@ -952,13 +1411,13 @@ def make_object(sim, scene: str, s: Settings, rng: np.random.Generator, rgba) ->
         sim.changeVisualShape(body, -1, rgbaColor=rgba, textureUniqueId=-1)
         v, f = body_frame_mesh(sim, body, path, scale)
     # Objects may sleep: a resting pile then costs nothing per physics step until something touches it.
-    sim.changeDynamics(body, -1, lateralFriction=s.object_friction,
+    sim.changeDynamics(body, -1, lateralFriction=cfg.object_friction,
                        activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING)
     return SceneObject(body, v, f, float(np.linalg.norm(v[:, :2], axis=1).max()), float(-v[:, 2].min()),
                        None if kind is not None else (path, scale))
 
 
-def build_workspace(sim, s: Settings) -> tuple[int, int, int]:
+def build_workspace(sim, cfg: Settings) -> tuple[int, int, int]:
     """Floor, four walls and the gripper on its constraint; returns (gripper, ghost, constraint) ids.
 
     The wrist camera must not see the gripper: TinyRenderer draws a body without a visual shape from
@@ -967,7 +1426,7 @@ def build_workspace(sim, s: Settings) -> tuple[int, int, int]:
     shapes parked under the floor and never moved: removing it would renumber the bodies after it and
     reshape Bullet's broadphase, so every stored episode would change.
     """
-    half, thick = s.workspace_m / 2, s.wall_thickness_m
+    half, thick = cfg.workspace_m / 2, cfg.wall_thickness_m
 
     def static_box(half_extents, pos, rgba):
         return sim.createMultiBody(0, sim.createCollisionShape(pb.GEOM_BOX, halfExtents=half_extents),
@@ -975,7 +1434,7 @@ def build_workspace(sim, s: Settings) -> tuple[int, int, int]:
                                   pos)
 
     static_box([half + 2 * thick] * 2 + [thick], [0, 0, -thick], FLOOR_RGBA)
-    wall_z = s.wall_height_m / 2
+    wall_z = cfg.wall_height_m / 2
     for sx in (-1, 1):
         static_box([thick, half + 2 * thick, wall_z], [sx * (half + thick), 0, wall_z], WALL_RGBA)
     for sy in (-1, 1):
@@ -984,7 +1443,7 @@ def build_workspace(sim, s: Settings) -> tuple[int, int, int]:
     col = sim.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, collisionFramePositions=centres)
     speck = sim.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=GRIPPER_BOXES[0][1],
                                  rgbaColor=(0, 0, 0, 0))
-    gripper = sim.createMultiBody(s.gripper_mass_kg, col, speck, [0, 0, 1])
+    gripper = sim.createMultiBody(cfg.gripper_mass_kg, col, speck, [0, 0, 1])
     sim.changeDynamics(gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
     vis = sim.createVisualShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, visualFramePositions=centres,
                                     rgbaColors=[GRIPPER_RGBA] * 3)
@@ -993,61 +1452,61 @@ def build_workspace(sim, s: Settings) -> tuple[int, int, int]:
     return gripper, ghost, constraint
 
 
-def object_count(s: Settings, scene: str, rng: np.random.Generator) -> tuple[int, bool]:
+def object_count(cfg: Settings, scene: str, rng: np.random.Generator) -> tuple[int, bool]:
     """Number of objects (Table I) and whether they are heaped into piles (all but exploration_ratio of
     the interactive task's scenes); primitive and shape piles are denser (Table II's caption)."""
-    heaped = s.num_piles > 0 and rng.random() >= s.exploration_ratio
+    heaped = cfg.num_piles > 0 and rng.random() >= cfg.exploration_ratio
     if heaped and scene in ("fixed-primitives", "variable-primitives", "random-shapes"):
-        lo, hi = s.objects_per_pile_dense
-        return int(rng.integers(lo * s.num_piles, hi * s.num_piles + 1)), True
-    return int(rng.integers(s.min_objects, s.max_objects + 1)), heaped
+        lo, hi = cfg.objects_per_pile_dense
+        return int(rng.integers(lo * cfg.num_piles, hi * cfg.num_piles + 1)), True
+    return int(rng.integers(cfg.min_objects, cfg.max_objects + 1)), heaped
 
 
-def scatter_positions(objects: list, s: Settings, rng: np.random.Generator) -> list:
+def scatter_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> list:
     """(xyz, yaw) resting poses apart from each other, by rejection; an object with no room is
     dropped from above onto whatever lies below."""
-    half = s.workspace_m / 2
+    half = cfg.workspace_m / 2
     placed, poses = [], []
     for obj in objects:
         r = obj.radius_m
-        for _ in range(s.scatter_tries):
+        for _ in range(cfg.scatter_tries):
             xy = rng.uniform(-half + r, half - r, 2)
-            if all(np.linalg.norm(xy - q) > r + rq + s.scatter_gap_m for q, rq in placed):
-                z = obj.half_height_m + s.drop_gap_m
+            if all(np.linalg.norm(xy - q) > r + rq + cfg.scatter_gap_m for q, rq in placed):
+                z = obj.half_height_m + cfg.drop_gap_m
                 break
         else:
-            z = obj.half_height_m + s.no_room_drop_m
+            z = obj.half_height_m + cfg.no_room_drop_m
         placed.append((xy, r))
         poses.append((np.r_[xy, z], rng.uniform(-np.pi, np.pi)))
     return poses
 
 
-def pile_positions(objects: list, s: Settings, rng: np.random.Generator) -> list:
+def pile_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> list:
     """(xyz, yaw) drop poses on square pyramids of spots over num_piles random centres.
 
     Spots are filled in order of ring (distance from the pile's axis) plus pile_layer_cost per layer,
     so a pile grows from its bottom centre outward and upward. The first object (the target, when
     there is one) takes the bottom centre of the first pile, and the rest falls around and onto it.
     """
-    half = s.workspace_m / 2
+    half = cfg.workspace_m / 2
     centres = []
-    while len(centres) < s.num_piles:
-        c = rng.uniform(-half + s.pile_margin_m, half - s.pile_margin_m, 2)
-        if all(np.linalg.norm(c - q) > s.pile_min_apart_m for q in centres) or rng.random() < s.pile_overlap_chance:
+    while len(centres) < cfg.num_piles:
+        c = rng.uniform(-half + cfg.pile_margin_m, half - cfg.pile_margin_m, 2)
+        if all(np.linalg.norm(c - q) > cfg.pile_min_apart_m for q in centres) or rng.random() < cfg.pile_overlap_chance:
             centres.append(c)
-    share = np.array_split(np.arange(len(objects)), s.num_piles)
+    share = np.array_split(np.arange(len(objects)), cfg.num_piles)
     poses = [None] * len(objects)
-    n = s.pile_layers
+    n = cfg.pile_layers
     for centre, members in zip(centres, share):
-        spacing = 2 * max(objects[i].radius_m for i in members) * s.pile_spacing_ratio
-        step_z = 2 * max(objects[i].half_height_m for i in members) + s.pile_layer_gap_m
-        spots = [(ring + s.pile_layer_cost * layer + s.pile_spot_noise * rng.random(), (x, y, layer))
+        spacing = 2 * max(objects[i].radius_m for i in members) * cfg.pile_spacing_ratio
+        step_z = 2 * max(objects[i].half_height_m for i in members) + cfg.pile_layer_gap_m
+        spots = [(ring + cfg.pile_layer_cost * layer + cfg.pile_spot_noise * rng.random(), (x, y, layer))
                  for layer in range(n) for x in np.arange(n - layer) - (n - 1 - layer) / 2
                  for y in np.arange(n - layer) - (n - 1 - layer) / 2 for ring in [max(abs(x), abs(y))]]
         spots.sort(key=lambda t: t[0])
         for i, (_, (x, y, layer)) in zip(members, spots):
-            jitter = rng.normal(0, s.pile_jitter_ratio * spacing, 2)
-            z = objects[i].half_height_m + s.drop_gap_m + layer * step_z
+            jitter = rng.normal(0, cfg.pile_jitter_ratio * spacing, 2)
+            z = objects[i].half_height_m + cfg.drop_gap_m + layer * step_z
             xyz = np.r_[centre + spacing * np.array([x, y]) + jitter, z]
             poses[i] = (xyz, rng.uniform(-np.pi, np.pi))
     return poses
@@ -1056,14 +1515,14 @@ def pile_positions(objects: list, s: Settings, rng: np.random.Generator) -> list
 SETTLE_CHECK_EVERY = 8   # physics steps between checks that everything is at rest (a check costs a few)
 
 
-def objects_at_rest(sim, objects: list, s: Settings) -> bool:
+def objects_at_rest(sim, objects: list, cfg: Settings) -> bool:
     if not objects:
         return True
     velocity = np.array([sim.getBaseVelocity(o.body)[0] for o in objects])
-    return float(np.max(np.sum(velocity ** 2, axis=1))) < s.settle_speed ** 2
+    return float(np.max(np.sum(velocity ** 2, axis=1))) < cfg.settle_speed ** 2
 
 
-def settle(sim, objects: list, s: Settings, max_steps: int) -> bool:
+def settle(sim, objects: list, cfg: Settings, max_steps: int) -> bool:
     """Step physics until every object is at rest, then put them all to sleep; False if still moving.
 
     pybullet only lets bodies sleep after 2 s at rest; sending them to sleep at once keeps later
@@ -1071,21 +1530,21 @@ def settle(sim, objects: list, s: Settings, max_steps: int) -> bool:
     """
     for step in range(max_steps):
         sim.stepSimulation()
-        if step % SETTLE_CHECK_EVERY == SETTLE_CHECK_EVERY - 1 and objects_at_rest(sim, objects, s):
+        if step % SETTLE_CHECK_EVERY == SETTLE_CHECK_EVERY - 1 and objects_at_rest(sim, objects, cfg):
             for o in objects:
                 sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
             return True
     return False
 
 
-def target_surface(target: SceneObject, s: Settings, rng: np.random.Generator):
+def target_surface(target: SceneObject, cfg: Settings, rng: np.random.Generator):
     """Ground truth of "seen": surface_points points on the target in its own frame (so they follow it
     when pushed), their outward normals, and the target's visible surface area (m^2)."""
     if target.model is None:     # a convex primitive: all of its surface can be seen
-        points, normals = sample_surface(target.vertices, target.faces, s.surface_points, rng)
+        points, normals = sample_surface(target.vertices, target.faces, cfg.surface_points, rng)
         return points, normals, mesh_area(target.vertices, target.faces)
-    points, normals, area = exterior_surface(*target.model, s.seen_min_cos)
-    pick = rng.choice(len(points), s.surface_points, replace=False)
+    points, normals, area = exterior_surface(*target.model, cfg.seen_min_cos)
+    pick = rng.choice(len(points), cfg.surface_points, replace=False)
     return points[pick], normals[pick], area
 
 
@@ -1099,52 +1558,46 @@ class Scene:
     target_area_m2: float       # the target's visible surface (the nominal cube's when absent)
 
 
-def build_scene(sim, s: Settings, scene: str, rng: np.random.Generator) -> Scene:
+def build_scene(sim, cfg: Settings, scene: str, rng: np.random.Generator) -> Scene:
     """Draw one scene of a kind into a world holding only the workspace: objects, their resting poses
     (scattered, or heaped with the target at the bottom of a pile), and the target's ground truth."""
-    count, heaped = object_count(s, scene, rng)
-    target_present = bool(rng.random() >= s.no_target_prob)
+    count, heaped = object_count(cfg, scene, rng)
+    target_present = bool(rng.random() >= cfg.no_target_prob)
     objects = []
     for i in range(count):
         rgba = TARGET_RGBA if i == 0 and target_present else OTHER_RGBA[rng.integers(len(OTHER_RGBA))]
-        objects.append(make_object(sim, scene, s, rng, rgba))
-    poses = (pile_positions if heaped else scatter_positions)(objects, s, rng)
+        objects.append(make_object(sim, scene, cfg, rng, rgba))
+    poses = (pile_positions if heaped else scatter_positions)(objects, cfg, rng)
     for obj, (xyz, yaw) in zip(objects, poses):
         sim.resetBasePositionAndOrientation(obj.body, xyz, pb.getQuaternionFromEuler([0, 0, yaw]))
-    settle(sim, objects, s, s.settle_pile_substeps if heaped else s.settle_scatter_substeps)
+    settle(sim, objects, cfg, cfg.settle_pile_substeps if heaped else cfg.settle_scatter_substeps)
     if target_present:
-        points, normals, area = target_surface(objects[0], s, rng)
+        points, normals, area = target_surface(objects[0], cfg, rng)
     else:
         points = normals = np.zeros((0, 3))
-        area = s.nominal_target_area_m2
+        area = cfg.nominal_target_area_m2
     return Scene(objects, target_present, heaped, points, normals, area)
 
 
 # ================================================================================================
-# Simulation III (Sec. III-B.3, III-C): the object finding task as a Gymnasium environment, rewards.
+# The world III (Sec. III-B.3, III-C): the object finding task as a Gymnasium environment. The world
+# simulates the gripper, the scene, the wrist view and the detector's noise, judges "seen" by the
+# ground truth and pays the rewards; the robot's side is one Searcher.
 # ================================================================================================
 
 SWEEP_MARGIN_M = 0.005  # the box swept by one move, grown by this before asking what it touches
 REACH_CHECK_EVERY = 4   # physics steps between checks of the gripper's progress towards an action's pose
-ACTION_MOVES = 5        # dx, dy, dz, roll, yaw; then terminate
-ACTION_SIZE = ACTION_MOVES + 1
-ACTION_NAMES = ("dx", "dy", "dz", "roll", "yaw", "terminate")
 OUTSIDE_VIEW = (320, 240)   # width, height of render() and of each demo panel
 
 
-@dataclass(frozen=True)
-class AgentView:
-    """The part of the world a searching agent is granted, one step's worth (`ObjectFindingEnv.agent_view`)."""
+@dataclass(frozen=True, eq=False)
+class WristView:
+    """One view of the wrist rig as the world made it: what the searcher was fed, and the colour image."""
 
-    s: Settings
-    volume: TSDFVolume            # the agent's own fused views (read only)
-    K: np.ndarray                 # (3, 3) wrist camera intrinsics
-    T_world_tool: np.ndarray      # (4, 4) the gripper's pose (proprioception)
-    target_area_m2: float         # the target's surface as told by the information rule
-
-    def perceived_target_share(self) -> float:
-        """Seen target area over the target's own: the searchers' stop rule (the truth decides success)."""
-        return self.volume.seen_target_area_m2() / self.target_area_m2
+    rgb: np.ndarray              # (H, W, 3) uint8
+    depth_m: np.ndarray          # (H, W) metres along z, 0 where nothing returned
+    detections: np.ndarray       # (H, W) the simulated detector's scores in [0, 1]
+    T_world_camera: np.ndarray   # (4, 4)
 
 
 class ObjectFindingEnv(gym.Env):
@@ -1168,105 +1621,64 @@ class ObjectFindingEnv(gym.Env):
             raise ValueError(f"unsupported render_mode {render_mode!r}")
         self.task, self.scene, self.render_mode = task, scene, render_mode
         try:   # e.g. target_size_known=False: any Settings field, for ablations
-            self.s = s = dataclasses.replace(TASKS[task], **overrides)
+            self.cfg = dataclasses.replace(TASKS[task], **overrides)
         except TypeError:
             raise ValueError(f"unknown Settings field among {', '.join(overrides)}") from None
         self._seed = seed
         self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (STATE_SIZE,), np.float32)
-        self.volume = TSDFVolume(s)
-        self.K = intrinsics(s)
+        self.searcher = Searcher(self.cfg)
+        self.rig = self.searcher.rig   # the cameras as mounted: today exactly as the robot believes
         self.sim = PhysicsClient()
-        self.timings = dict.fromkeys(("physics", "render", "detect", "integrate", "encode"), 0.0)
-        self.last_views: dict = {}   # the latest rgb, depth and detections, for demos and tests
+        self.view: WristView | None = None
 
-    # --- a new scene -----------------------------------------------------------------------------
+    # --- one step: the data flow of Fig. 2 ------------------------------------------------------
 
-    def _build_scene(self, rng) -> None:
-        """A fresh world: physics settings, the workspace with the gripper, then a drawn scene."""
-        s, sim = self.s, self.sim
-        sim.resetSimulation()
-        sim.setGravity(0, 0, -9.81)
-        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / s.physics_hz, numSolverIterations=s.solver_iterations)
-        self.gripper, self.ghost, self.constraint = build_workspace(sim, s)
-        scene = build_scene(sim, s, self.scene, rng)
-        self.objects, self.target_present, self.heaped = scene.objects, scene.target_present, scene.heaped
-        self.target_points, self.target_normals = scene.target_points, scene.target_normals
-        self.target_area_m2 = scene.target_area_m2
-        # the information rule: what the searcher is told of the target's size (the nominal cube's if absent)
-        self.told_target_area_m2 = scene.target_area_m2 if s.target_size_known else s.nominal_target_area_m2
-        self.target_seen = np.zeros(len(self.target_points), bool)   # (surface_points,) ever seen
-        self.disturbed = False   # objects still moving after the last push
+    def step(self, action):
+        action = self.checked_action(action)
+        self.steps += 1
+        reward = -self.cfg.time_penalty
+        if action[ACTION_MOVES] > 0:   # terminate: claim the target was found, or that there is none
+            info = self._info()
+            success = info["target_observed"] if self.target_present else True
+            reward += self.cfg.detection_reward if success else -self.cfg.detection_reward
+            info.update(success=success, terminated_by_agent=True)
+            self.episode_over = True
+            return self.searcher.state(self.gripper_pose()), reward, True, False, info
+        T_world_tool = self.gripper_pose()
+        T_goal = self.searcher.goal_pose(T_world_tool, action)          # robot: the action as a pose
+        self._drive_gripper(T_world_tool, T_goal)                       # world: physics, pushing
+        newly = self._observe()                                         # world: view -> robot: fuse
+        explored_share = newly / self.searcher.volume.tsdf.size         # reward for what was new
+        reward += self.cfg.time_penalty * min(1.0, explored_share / self.cfg.exploration_normaliser)
+        state, info = self.searcher.state(self.gripper_pose()), self._info()   # robot: encode
+        # The horizon is part of the task (a finite-horizon MDP with a failure penalty), so reaching it
+        # terminates the episode rather than truncating it.
+        if self.steps >= self.cfg.horizon:
+            reward -= self.cfg.detection_reward
+            info.update(success=False, terminated_by_agent=False)
+            self.episode_over = True
+            return state, reward, True, False, info
+        return state, reward, False, False, info
 
-    def _place_gripper(self, rng) -> None:
-        """Random x, y, height and yaw, roll 0; resampled while it would overlap an object."""
-        s, sim = self.s, self.sim
-        half = s.workspace_m / 2 - s.gripper_start_margin_m
-        for attempt in range(s.gripper_start_tries):
-            xyz = np.r_[rng.uniform(-half, half, 2), rng.uniform(s.gripper_start_min_z_m, s.ceiling_m)]
-            if attempt == s.gripper_start_tries - 1:   # the last try: above everything
-                xyz[2] = s.ceiling_m
-            yaw = rng.uniform(-np.pi, np.pi)
-            self._teleport(xyz, gripper_rotation(yaw, 0.0))
-            sim.performCollisionDetection()
-            if not sim.getContactPoints(self.gripper):
-                break
+    def _observe(self) -> int:
+        """The wrist view: render, detect with the paper's noise, judge "seen" by the ground truth, and
+        feed the searcher; returns the voxels it observed for the first time."""
+        T_world_camera = self.gripper_pose() @ self.rig.T_tool_depth
+        rgb, depth_m = self._render(T_world_camera)
+        detections = self._detect(rgb)
+        self.view = WristView(rgb, depth_m, detections, T_world_camera)
+        self._judge_seen(T_world_camera, depth_m)
+        return self.searcher.observe(depth_m, T_world_camera, detections=detections)
 
-    # --- the gripper ----------------------------------------------------------------------------
+    def _render(self, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return render_rgbd(self.sim, T_world_camera, self.rig.depth)
 
-    def gripper_pose(self) -> np.ndarray:
-        """T_world_tool (4 x 4) of the gripper body as simulated."""
-        pos, orn = self.sim.getBasePositionAndOrientation(self.gripper)
-        T = np.eye(4)
-        T[:3, :3] = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
-        T[:3, 3] = pos
-        return T
+    def _detect(self, rgb: np.ndarray) -> np.ndarray:
+        """The simulated detector of Sec. III-C: the colour detector's truth with the paper's noise."""
+        return add_detector_noise(detect_target(rgb), self.np_random, self.cfg)
 
-    def _teleport(self, xyz, R) -> None:
-        q = quat_of(R)
-        self.sim.resetBasePositionAndOrientation(self.gripper, xyz, q)
-        self.sim.resetBaseVelocity(self.gripper, [0, 0, 0], [0, 0, 0])
-        self.sim.changeConstraint(self.constraint, xyz, q, maxForce=self.s.gripper_force_n)
-
-    def _move_gripper(self, action: np.ndarray) -> None:
-        """Drive the gripper by one action's displacement: teleport through free space, simulate contact.
-
-        Speed trick: when the box swept by the gripper touches no other body's bounding box and nothing
-        is still moving, the force-bounded constraint would reach the goal unhindered, so the gripper is
-        placed there and no physics step is spent. Otherwise the constraint pulls it there with bounded
-        force while physics runs, until the pose is reached or the gripper stalls, then objects settle.
-        """
-        s, sim = self.s, self.sim
-        T = self.gripper_pose()
-        T_goal = action_goal(T, action, s)
-        goal, R_goal = T_goal[:3, 3], T_goal[:3, :3]
-        lo, hi = sim.getAABB(self.gripper)
-        corners = GRIPPER_CORNERS @ R_goal.T + goal
-        lo = np.minimum(lo, corners.min(0)) - SWEEP_MARGIN_M
-        hi = np.maximum(hi, corners.max(0)) + SWEEP_MARGIN_M
-        near = sim.getOverlappingObjects(lo.tolist(), hi.tolist()) or []
-        if not self.disturbed and all(body in (self.gripper, self.ghost) for body, _ in near):
-            self._teleport(goal, R_goal)
-            return
-        q_goal = quat_of(R_goal)
-        sim.changeConstraint(self.constraint, goal.tolist(), q_goal, maxForce=s.gripper_force_n)
-        last = T[:3, 3]
-        for substep in range(1, s.max_substeps + 1):
-            sim.stepSimulation()
-            if substep % REACH_CHECK_EVERY == 0:
-                pos, orn = sim.getBasePositionAndOrientation(self.gripper)
-                pos = np.array(pos)
-                angle = 2 * np.arccos(min(1.0, abs(float(np.dot(orn, q_goal)))))
-                reached = np.linalg.norm(pos - goal) < s.reach_tol_m and angle < s.reach_tol_rad
-                stalled = np.linalg.norm(pos - last) < s.stall_m        # blocked by a wall or a heavy pile
-                if reached or stalled:
-                    break
-                last = pos
-        self.disturbed = not settle(sim, self.objects, s, s.settle_substeps)
-
-    # --- perception of one view -----------------------------------------------------------------
-
-    def _update_target_seen(self, T_world_camera: np.ndarray, depth_m: np.ndarray) -> None:
+    def _judge_seen(self, T_world_camera: np.ndarray, depth_m: np.ndarray) -> None:
         """Ground truth: surface points that face the camera, project into the image, and are unoccluded."""
         if not self.target_present:
             return
@@ -1275,74 +1687,31 @@ class ObjectFindingEnv(gym.Env):
         world = self.target_points @ R.T + pos
         to_camera = T_world_camera[:3, 3] - world
         facing = (np.sum((self.target_normals @ R.T) * to_camera, axis=1)
-                  > self.s.seen_min_cos * np.linalg.norm(to_camera, axis=1))
+                  > self.cfg.seen_min_cos * np.linalg.norm(to_camera, axis=1))
         cam = (world - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]     # R^T (p - t), row-wise
         z = cam[:, 2]
         safe = np.where(z > 1e-6, z, 1.0)
-        u = np.floor(self.K[0, 0] * cam[:, 0] / safe + self.K[0, 2]).astype(int)
-        v = np.floor(self.K[1, 1] * cam[:, 1] / safe + self.K[1, 2]).astype(int)
+        K = self.rig.depth.K
+        u = np.floor(K[0, 0] * cam[:, 0] / safe + K[0, 2]).astype(int)
+        v = np.floor(K[1, 1] * cam[:, 1] / safe + K[1, 2]).astype(int)
         H, W = depth_m.shape
-        inside = (z > self.s.near_m) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        inside = (z > self.cfg.near_m) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         rendered = depth_m[np.clip(v, 0, H - 1), np.clip(u, 0, W - 1)]
-        unoccluded = (rendered == 0) | (rendered > z - self.s.seen_depth_tol_m)   # nothing in front of it
+        unoccluded = (rendered == 0) | (rendered > z - self.cfg.seen_depth_tol_m)   # nothing in front of it
         self.target_seen |= facing & inside & unoccluded
-
-    def _observe(self) -> int:
-        """Render the wrist camera, detect, add noise, integrate; returns newly observed voxels."""
-        s = self.s
-        t0 = time.perf_counter()
-        T_world_camera = camera_pose(self.gripper_pose(), s)
-        rgb, depth = render_rgbd(self.sim, T_world_camera, self.K, s.image_width, s.image_height,
-                                 s.near_m, s.far_m)
-        t1 = time.perf_counter()
-        detections = add_detector_noise(detect_target(rgb), self.np_random, s)
-        t2 = time.perf_counter()
-        newly = self.volume.integrate(depth, detections, self.K, T_world_camera)
-        t3 = time.perf_counter()
-        self.timings.update(render=1e3 * (t1 - t0), detect=1e3 * (t2 - t1), integrate=1e3 * (t3 - t2))
-        self._update_target_seen(T_world_camera, depth)   # ground truth, not part of the agent's pipeline
-        self.last_views = dict(rgb=rgb, depth=depth, detections=detections, T_world_camera=T_world_camera)
-        return newly
-
-    def _state(self) -> np.ndarray:
-        t0 = time.perf_counter()
-        T = self.gripper_pose()
-        yaw, roll = yaw_roll_of(T[:3, :3])
-        # the detection sum in units of the told target's surface, counted in voxel faces
-        state = encode_state(self.volume, T[:3, 3], yaw, roll, T[2, 3], self.s.crop_m,
-                             self.told_target_area_m2 / self.s.voxel_m ** 2)
-        self.timings["encode"] = 1e3 * (time.perf_counter() - t0)
-        return state
-
-    def agent_view(self) -> AgentView:
-        """What an agent may know: its settings, the volume, the camera, its own pose and the target's
-        size if the information rule grants it. Agents read nothing else of the env: the simulator's
-        state (the target's pose, its seen points, its true area) is the judge, never an input."""
-        return AgentView(self.s, self.volume, self.K, self.gripper_pose(), self.told_target_area_m2)
 
     def _info(self) -> dict:
         seen = float(self.target_seen.mean()) if self.target_present else 0.0
         return dict(target_present=self.target_present, target_seen_fraction=seen,
-                    target_observed=seen >= self.s.seen_threshold,
-                    explored_fraction=self.volume.explored_fraction(), steps=self.steps)
-
-    # --- the Gymnasium API -----------------------------------------------------------------------
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        if seed is None and self._seed is not None:
-            seed, self._seed = self._seed, None
-        super().reset(seed=seed)
-        rng = self.np_random
-        self._build_scene(rng)
-        self._place_gripper(rng)
-        self.volume.reset()
-        self.steps, self.episode_over = 0, False
-        self._observe()
-        return self._state(), self._info()
+                    target_observed=seen >= self.cfg.seen_threshold,
+                    explored_fraction=self.searcher.volume.explored_fraction(), steps=self.steps)
 
     def checked_action(self, action) -> np.ndarray:
         """The action as (6,) float64 clipped to the Box, or a ValueError naming what is wrong with it;
         nothing of the env changes before the action passed, so the next good action works."""
+        if getattr(self, "episode_over", True):
+            raise RuntimeError("step() needs reset() first: " + ("the episode has ended" if hasattr(self, "steps")
+                                                                 else "no episode has started"))
         try:
             action = np.asarray(action, np.float64)
         except (TypeError, ValueError):
@@ -1356,37 +1725,100 @@ class ObjectFindingEnv(gym.Env):
                              "every component must be finite")
         return np.clip(action, -1.0, 1.0)
 
-    def step(self, action):
-        s = self.s
-        if getattr(self, "episode_over", True):
-            raise RuntimeError("step() needs reset() first: " + ("the episode has ended" if hasattr(self, "steps")
-                                                                 else "no episode has started"))
-        action = self.checked_action(action)
-        self.steps += 1
-        reward = -s.time_penalty
-        if action[ACTION_MOVES] > 0:   # terminate: claim the target was found, or that there is none
-            info = self._info()
-            success = info["target_observed"] if self.target_present else True
-            reward += s.detection_reward if success else -s.detection_reward
-            info.update(success=success, terminated_by_agent=True)
-            self.timings.update(physics=0.0, render=0.0, detect=0.0, integrate=0.0, encode=0.0)
-            self.episode_over = True
-            return self._state(), reward, True, False, info
-        t0 = time.perf_counter()
-        self._move_gripper(action)
-        self.timings["physics"] = 1e3 * (time.perf_counter() - t0)
-        newly = self._observe()
-        explored_share = newly / self.volume.tsdf.size
-        reward += s.time_penalty * min(1.0, explored_share / s.exploration_normaliser)
-        state, info = self._state(), self._info()
-        # The horizon is part of the task (a finite-horizon MDP with a failure penalty), so reaching it
-        # terminates the episode rather than truncating it.
-        if self.steps >= s.horizon:
-            reward -= s.detection_reward
-            info.update(success=False, terminated_by_agent=False)
-            self.episode_over = True
-            return state, reward, True, False, info
-        return state, reward, False, False, info
+    # --- a new scene -----------------------------------------------------------------------------
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is None and self._seed is not None:
+            seed, self._seed = self._seed, None
+        super().reset(seed=seed)
+        rng = self.np_random
+        self._build_scene(rng)
+        self._place_gripper(rng)
+        # the information rule: what the searcher is told of the target's size (the nominal cube's if absent)
+        self.searcher.reset(self.target_area_m2 if self.cfg.target_size_known else self.cfg.nominal_target_area_m2)
+        self.steps, self.episode_over = 0, False
+        self._observe()
+        return self.searcher.state(self.gripper_pose()), self._info()
+
+    def _build_scene(self, rng) -> None:
+        """A fresh world: physics settings, the workspace with the gripper, then a drawn scene."""
+        cfg, sim = self.cfg, self.sim
+        sim.resetSimulation()
+        sim.setGravity(0, 0, -9.81)
+        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, numSolverIterations=cfg.solver_iterations)
+        self.gripper, self.ghost, self.constraint = build_workspace(sim, cfg)
+        scene = build_scene(sim, cfg, self.scene, rng)
+        self.objects, self.target_present, self.heaped = scene.objects, scene.target_present, scene.heaped
+        self.target_points, self.target_normals = scene.target_points, scene.target_normals
+        self.target_area_m2 = scene.target_area_m2
+        self.target_seen = np.zeros(len(self.target_points), bool)   # (surface_points,) ever seen
+        self.disturbed = False   # objects still moving after the last push
+
+    def _place_gripper(self, rng) -> None:
+        """Random x, y, height and yaw, roll 0; resampled while it would overlap an object."""
+        cfg, sim = self.cfg, self.sim
+        half = cfg.workspace_m / 2 - cfg.gripper_start_margin_m
+        for attempt in range(cfg.gripper_start_tries):
+            xyz = np.r_[rng.uniform(-half, half, 2), rng.uniform(cfg.gripper_start_min_z_m, cfg.ceiling_m)]
+            if attempt == cfg.gripper_start_tries - 1:   # the last try: above everything
+                xyz[2] = cfg.ceiling_m
+            yaw = rng.uniform(-np.pi, np.pi)
+            self._teleport(xyz, gripper_rotation(yaw, 0.0))
+            sim.performCollisionDetection()
+            if not sim.getContactPoints(self.gripper):
+                break
+
+    # --- the gripper ----------------------------------------------------------------------------
+
+    def gripper_pose(self) -> np.ndarray:
+        """T_world_tool (4 x 4) of the gripper body as simulated: what the arm reports."""
+        pos, orn = self.sim.getBasePositionAndOrientation(self.gripper)
+        T = np.eye(4)
+        T[:3, :3] = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        T[:3, 3] = pos
+        return T
+
+    def _teleport(self, xyz, R) -> None:
+        q = quat_of(R)
+        self.sim.resetBasePositionAndOrientation(self.gripper, xyz, q)
+        self.sim.resetBaseVelocity(self.gripper, [0, 0, 0], [0, 0, 0])
+        self.sim.changeConstraint(self.constraint, xyz, q, maxForce=self.cfg.gripper_force_n)
+
+    def _drive_gripper(self, T_world_tool: np.ndarray, T_goal: np.ndarray) -> None:
+        """Drive the gripper to a goal pose: teleport through free space, simulate contact.
+
+        Speed trick: when the box swept by the gripper touches no other body's bounding box and nothing
+        is still moving, the force-bounded constraint would reach the goal unhindered, so the gripper is
+        placed there and no physics step is spent. Otherwise the constraint pulls it there with bounded
+        force while physics runs, until the pose is reached or the gripper stalls, then objects settle.
+        """
+        cfg, sim = self.cfg, self.sim
+        goal, R_goal = T_goal[:3, 3], T_goal[:3, :3]
+        lo, hi = sim.getAABB(self.gripper)
+        corners = GRIPPER_CORNERS @ R_goal.T + goal
+        lo = np.minimum(lo, corners.min(0)) - SWEEP_MARGIN_M
+        hi = np.maximum(hi, corners.max(0)) + SWEEP_MARGIN_M
+        near = sim.getOverlappingObjects(lo.tolist(), hi.tolist()) or []
+        if not self.disturbed and all(body in (self.gripper, self.ghost) for body, _ in near):
+            self._teleport(goal, R_goal)
+            return
+        q_goal = quat_of(R_goal)
+        sim.changeConstraint(self.constraint, goal.tolist(), q_goal, maxForce=cfg.gripper_force_n)
+        last = T_world_tool[:3, 3]
+        for substep in range(1, cfg.max_substeps + 1):
+            sim.stepSimulation()
+            if substep % REACH_CHECK_EVERY == 0:
+                pos, orn = sim.getBasePositionAndOrientation(self.gripper)
+                pos = np.array(pos)
+                angle = 2 * np.arccos(min(1.0, abs(float(np.dot(orn, q_goal)))))
+                reached = np.linalg.norm(pos - goal) < cfg.reach_tol_m and angle < cfg.reach_tol_rad
+                stalled = np.linalg.norm(pos - last) < cfg.stall_m        # blocked by a wall or a heavy pile
+                if reached or stalled:
+                    break
+                last = pos
+        self.disturbed = not settle(sim, self.objects, cfg, cfg.settle_substeps)
+
+    # --- pictures ---------------------------------------------------------------------------------
 
     def render(self):
         if self.render_mode == "rgb_array":
@@ -1394,14 +1826,10 @@ class ObjectFindingEnv(gym.Env):
         return None
 
     def outside_view(self, width: int = OUTSIDE_VIEW[0], height: int = OUTSIDE_VIEW[1]) -> np.ndarray:
-        """The scene from a fixed oblique camera with the gripper painted in, (H, W, 3) uint8.
-
-        The gripper is painted into the image rather than drawn by a body: moving even a body without
-        collision shapes reorders Bullet's broadphase, so the episode would diverge from eval's.
-        """
-        s = self.s
-        eye = np.array([0.0, -1.3, 1.3]) * s.workspace_m
-        forward = np.array([0.0, 0.0, 0.12 * s.workspace_m]) - eye
+        """The scene from a fixed oblique camera with the gripper painted in, (H, W, 3) uint8. Painted,
+        not drawn by a body: moving any body reorders Bullet's broadphase and so changes the episode."""
+        eye = np.array([0.0, -1.3, 1.3]) * self.cfg.workspace_m
+        forward = np.array([0.0, 0.0, 0.12 * self.cfg.workspace_m]) - eye
         forward /= np.linalg.norm(forward)
         right = np.cross(forward, [0.0, 0.0, 1.0])
         right /= np.linalg.norm(right)
@@ -1409,7 +1837,7 @@ class ObjectFindingEnv(gym.Env):
         T[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)   # OpenCV axes: x right, y down
         T[:3, 3] = eye
         K = np.array([[height * 1.1, 0, width / 2], [0, height * 1.1, height / 2], [0, 0, 1]])
-        rgb, depth = render_rgbd(self.sim, T, K, width, height, 0.05, 4 * s.workspace_m)
+        rgb, depth = render_rgbd(self.sim, T, Camera(width, height, K, 0.05, 4 * self.cfg.workspace_m))
         return paint_gripper(rgb, depth, T, K, self.gripper_pose())
 
     def close(self):
@@ -1427,332 +1855,8 @@ for _id, _task in GYM_IDS.items():
 
 
 # ================================================================================================
-# Agents (Sec. IV-B): an agent has reset(view) and act(obs, view) -> action in the env's Box(-1, 1, (6,)),
-# where view is the env's AgentView: what a searcher may know. Two simple agents and the two baselines.
+# Learning (Sec. III-B.4, IV-A): a hand-written PPO for the A3DE and I3DE policies.
 # ================================================================================================
-
-def stop_action() -> np.ndarray:
-    """The action that terminates: stay, and claim the target was found (or that there is none)."""
-    action = np.zeros(ACTION_SIZE, np.float32)
-    action[ACTION_MOVES] = 1.0
-    return action
-
-
-class RandomAgent:
-    """Uniform random displacements; terminates with a small probability per step."""
-
-    terminate_prob = 0.02   # about 50 steps per episode, well inside the horizon
-
-    def __init__(self, seed: int | None = None):
-        self.rng = np.random.default_rng(seed)
-
-    def reset(self, view: AgentView) -> None:
-        pass
-
-    def act(self, obs, view: AgentView) -> np.ndarray:
-        action = self.rng.uniform(-1, 1, ACTION_SIZE).astype(np.float32)
-        action[ACTION_MOVES] = 1.0 if self.rng.random() < self.terminate_prob else -1.0
-        return action
-
-
-class ScriptedAgent:
-    """A hand-written searcher: rise to the ceiling, tilt, then turn on the spot while drifting to the
-    workspace centre; terminate once the volume holds a perceived target or after one full turn."""
-
-    tilt_rad = 0.6   # looks past the walls' tops from the ceiling
-
-    def reset(self, view: AgentView) -> None:
-        self.turned_rad = 0.0
-
-    def act(self, obs, view: AgentView) -> np.ndarray:
-        s = view.s
-        T = view.T_world_tool
-        yaw, roll = yaw_roll_of(T[:3, :3])
-        if view.perceived_target_share() >= s.seen_threshold or self.turned_rad >= 2 * np.pi:
-            return stop_action()
-        action = np.zeros(ACTION_SIZE, np.float32)
-        action[ACTION_MOVES] = -1.0
-        to_centre = rotation_z(yaw).T @ np.r_[-T[0, 3], -T[1, 3], s.ceiling_m - T[2, 3]]
-        action[:3] = np.clip(to_centre / s.max_step_m, -1, 1)
-        action[3] = np.clip((self.tilt_rad - roll) / s.max_turn_rad, -1, 1)
-        if T[2, 3] > s.ceiling_m - s.max_step_m:      # high enough: start turning
-            action[4] = 1.0
-            self.turned_rad += s.max_turn_rad
-        return action
-
-
-def perceived_target_centre(volume: TSDFVolume, s: Settings):
-    """World centre of the detection voxels above the threshold, or None when nothing is detected."""
-    hits = np.argwhere(volume.detections > s.detection_threshold)
-    if len(hits) < s.gnbv_min_detections:   # a lone voxel is more likely noise than the target
-        return None
-    return volume.origin + (hits.mean(axis=0) + 0.5) * volume.voxel_m
-
-
-class GreedyNextBestView:
-    """GNBV, the active baseline (Sec. IV-B.1): one-step greedy next-best-view.
-
-    Samples n poses reachable in one action and moves to the one that would newly observe the most
-    voxels, found by casting rays through the local volume with unobserved space assumed empty. Once
-    the target is detected it instead moves to the pose that brings the target closest to the image
-    centre. Terminates above 97 % explored or 20 % of the target perceived.
-    """
-
-    def __init__(self, seed: int | None = None):
-        self.rng = np.random.default_rng(seed)
-
-    def reset(self, view: AgentView) -> None:
-        s = view.s
-        self.samples, self.stalled = s.gnbv_samples, 0
-        K = intrinsics(s)
-        u = (np.arange(s.gnbv_rays[0]) + 0.5) * s.image_width / s.gnbv_rays[0]   # a subsampled image
-        v = (np.arange(s.gnbv_rays[1]) + 0.5) * s.image_height / s.gnbv_rays[1]
-        uu, vv = np.meshgrid(u, v)
-        rays = np.stack([(uu.ravel() - K[0, 2]) / K[0, 0], (vv.ravel() - K[1, 2]) / K[1, 1],
-                         np.ones(uu.size)], 1)                                # (R, 3) at depth 1
-        depths = np.arange(s.near_m, s.far_m, view.volume.voxel_m)                # one sample per voxel
-        self.ray_points = (rays[:, None, :] * depths[None, :, None]).astype(np.float32)   # (R, D, 3)
-
-    def candidate_actions(self) -> np.ndarray:
-        """(n, 6) random actions that do not terminate: the poses one step away."""
-        actions = self.rng.uniform(-1, 1, (self.samples, ACTION_SIZE))
-        actions[:, ACTION_MOVES] = -1.0
-        return actions
-
-    def newly_observed(self, volume: TSDFVolume, T_cameras: np.ndarray, ee_xyz, s: Settings) -> np.ndarray:
-        """For each (4, 4) camera pose, the unobserved voxels its rays would reach, counted once each.
-
-        A ray stops at the first observed voxel behind a surface (TSDF below 0), the floor or a wall;
-        unobserved voxels are taken as empty, and voxels outside the crop around the gripper are
-        not known to the agent, so they neither count nor block. A ray that hits nothing (over a
-        wall, past the floor) brings no depth, and the camera learns nothing along it: it counts 0.
-        """
-        observed = volume.weight.reshape(-1) > 0
-        occupied = observed & (volume.tsdf.reshape(-1) < 0)
-        counts = np.zeros(len(T_cameras), np.int64)
-        shape = np.array(volume.shape)
-        half, floor_half = s.workspace_m / 2, s.workspace_m / 2 + 2 * s.wall_thickness_m
-        for c, T in enumerate(T_cameras):
-            world = self.ray_points @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)  # (R, D, 3)
-            index = np.floor((world - volume.origin) / volume.voxel_m).astype(np.int64)
-            inside = np.all((index >= 0) & (index < shape), axis=-1)
-            inside &= np.all(np.abs(world[..., :2] - ee_xyz[:2]) <= s.crop_m / 2, axis=-1)
-            flat = (index[..., 0] * shape[1] + index[..., 1]) * shape[2] + index[..., 2]
-            flat = np.where(inside, flat, 0)
-            out = np.abs(world[..., :2]).max(axis=-1)
-            floor = (world[..., 2] < 0) & (out <= floor_half)
-            wall = (out > half) & (out <= floor_half) & (world[..., 2] < s.wall_height_m)
-            blocked = (inside & occupied[flat]) | floor | wall
-            open_ray = ~np.logical_or.accumulate(blocked, axis=1)      # before the first blocker
-            returns = blocked.any(axis=1)                              # (R,) the ray brings a depth
-            new = open_ray & inside & ~observed[flat] & returns[:, None]
-            counts[c] = len(np.unique(flat[new]))
-        return counts
-
-    def centring_error(self, T_cameras: np.ndarray, target_xyz: np.ndarray, K: np.ndarray) -> np.ndarray:
-        """Pixel distance of the target's projection from the image centre, per camera (inf if behind)."""
-        errors = np.full(len(T_cameras), np.inf)
-        for c, T in enumerate(T_cameras):
-            p = T[:3, :3].T @ (target_xyz - T[:3, 3])
-            if p[2] > 1e-3:
-                errors[c] = np.hypot(K[0, 0] * p[0] / p[2], K[1, 1] * p[1] / p[2])
-        return errors
-
-    def act(self, obs, view: AgentView) -> np.ndarray:
-        s, volume = view.s, view.volume
-        if (volume.explored_fraction() > s.gnbv_explored_to_stop or self.stalled >= s.gnbv_stall_steps
-                or view.perceived_target_share() > s.seen_threshold):
-            return stop_action()
-        T = view.T_world_tool
-        actions = self.candidate_actions()
-        cameras = np.stack([camera_pose(action_goal(T, a, s), s) for a in actions])
-        target = perceived_target_centre(volume, s)
-        if target is not None:
-            best = int(np.argmin(self.centring_error(cameras, target, view.K)))
-        else:
-            gains = self.newly_observed(volume, cameras, T[:3, 3], s)
-            best = int(np.argmax(gains))
-            self.stalled = self.stalled + 1 if gains[best] < s.gnbv_stall_voxels else 0
-        return actions[best].astype(np.float32)
-
-
-def tour_length(points: np.ndarray, tour: np.ndarray, closed: bool = True) -> float:
-    legs = np.linalg.norm(np.diff(points[tour], axis=0), axis=1).sum()
-    return float(legs + (np.linalg.norm(points[tour[-1]] - points[tour[0]]) if closed else 0.0))
-
-
-def two_opt(points: np.ndarray, tour: np.ndarray, closed: bool = True) -> np.ndarray:
-    """Improve a tour by 2-opt moves (Croes 1958) until none shortens it; returns a new permutation.
-
-    A move reverses tour[i:j + 1], replacing edges (a, b) and (c, d) by (a, c) and (b, d). The gain
-    of every (i, j) pair is computed at once as an (n, n) array, and the best move is applied. With
-    closed=False the tour is a path whose first point stays first (the start of a search route).
-    """
-    tour = np.array(tour)
-    n = len(tour)
-    while True:
-        p = points[tour]
-        nxt = np.roll(p, -1, axis=0)                    # d after c: wraps for a closed tour
-        dist = lambda x, y: np.linalg.norm(x - y, axis=-1)
-        a, b = p[:-1][:, None], p[1:][:, None]          # edge (a, b) = (tour[i-1], tour[i]), i = 1..n-1
-        c, d = p[None, 1:], nxt[None, 1:]               # edge (c, d) = (tour[j], tour[j+1]), j = 1..n-1
-        gain = dist(a, b) + dist(c, d) - dist(a, c) - dist(b, d)
-        if not closed:
-            gain[:, -1] = (dist(a, b) - dist(a, c))[:, -1]   # the path's end: no edge leaves it
-        i, j = np.meshgrid(np.arange(1, n), np.arange(1, n), indexing="ij")
-        gain[(j <= i) | ((i == 1) & (j == n - 1) & closed)] = 0.0
-        best = np.unravel_index(np.argmax(gain), gain.shape)
-        if gain[best] <= 1e-12:
-            return tour
-        i, j = best[0] + 1, best[1] + 1
-        tour[i:j + 1] = tour[i:j + 1][::-1].copy()
-
-
-class GridExhaustiveSearch:
-    """GES, the interactive baseline (Sec. IV-B.2): sweep a grid at a fixed low height, pushing.
-
-    Nodes one max translation apart cover the workspace just above the lowest layer of objects, so
-    the fingers push whatever lies on top of another object. The route from the start is nearest
-    neighbour improved by 2-opt. Stops above 20 % of the target perceived, or at the end of the
-    grid, where it claims there is no target.
-    """
-
-    node_tol_m = 0.01   # a node counts as reached within this distance
-
-    def reset(self, view: AgentView) -> None:
-        s = view.s
-        spacing = s.max_step_m
-        n = int(round(s.workspace_m / spacing))
-        axis = (np.arange(n) + 0.5) * spacing - s.workspace_m / 2
-        self.height_m = s.object_size_m + s.ges_clearance_m       # fingertips just above the lowest cubes
-        self.nodes = np.stack(np.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
-        start = view.T_world_tool[:2, 3]
-        tour = self.nearest_neighbour(self.nodes, int(np.argmin(np.linalg.norm(self.nodes - start, axis=1))))
-        self.route = two_opt(self.nodes, tour, closed=False)
-        self.next, self.tries = 0, 0
-
-    @staticmethod
-    def nearest_neighbour(points: np.ndarray, start: int) -> np.ndarray:
-        tour, left = [start], np.ones(len(points), bool)
-        left[start] = False
-        while left.any():
-            d = np.where(left, np.linalg.norm(points - points[tour[-1]], axis=1), np.inf)
-            tour.append(int(np.argmin(d)))
-            left[tour[-1]] = False
-        return np.array(tour)
-
-    def act(self, obs, view: AgentView) -> np.ndarray:
-        s = view.s
-        T = view.T_world_tool
-        yaw, roll = yaw_roll_of(T[:3, :3])
-        while self.next < len(self.route):            # skip the nodes reached or given up
-            offset = np.r_[self.nodes[self.route[self.next]], self.height_m] - T[:3, 3]
-            if np.linalg.norm(offset[:2]) > self.node_tol_m and self.tries < s.ges_tries_per_node:
-                break
-            self.next, self.tries = self.next + 1, 0
-        if view.perceived_target_share() > s.seen_threshold or self.next >= len(self.route):
-            return stop_action()
-        self.tries += abs(offset[2]) < self.node_tol_m           # only count tries at the sweep height
-        step = rotation_z(yaw).T @ offset / s.max_step_m
-        action = np.zeros(ACTION_SIZE, np.float32)
-        action[:3] = np.clip(step, -1, 1)
-        action[3] = np.clip(-roll / s.max_turn_rad, -1, 1)
-        action[ACTION_MOVES] = -1.0
-        return action
-
-
-# ================================================================================================
-# Learning (Sec. III-B.4, IV-A): a hand-written PPO for the A3DE and I3DE policies, checkpoints, logs.
-# ================================================================================================
-
-class ActorCritic(nn.Module):
-    """Actor and critic MLPs (2 x 200, tanh). The actor gives the means of a Gaussian over the five
-    displacements (state-independent std) and the logit of a Bernoulli "terminate".
-
-    Both see the observation standardised by a running mean and variance kept in buffers, so they are
-    saved with the weights: the 71 values span scales from 1e-3 (a far bin) to 1 (the roll).
-    """
-
-    moves = ACTION_MOVES
-
-    def __init__(self, obs_dim: int, p: PPOSettings):
-        super().__init__()
-        self.obs_clip = p.obs_clip
-        self.register_buffer("obs_mean", torch.zeros(obs_dim))
-        self.register_buffer("obs_var", torch.ones(obs_dim))
-        self.register_buffer("obs_count", torch.tensor(0.0))
-        def mlp(out: int) -> nn.Sequential:
-            return nn.Sequential(nn.Linear(obs_dim, p.hidden), nn.Tanh(), nn.Linear(p.hidden, p.hidden),
-                                 nn.Tanh(), nn.Linear(p.hidden, out))
-        self.actor, self.critic = mlp(self.moves + 1), mlp(1)
-        self.log_std = nn.Parameter(torch.full((self.moves,), p.init_log_std))
-        with torch.no_grad():   # small initial means; a rarely terminating start
-            self.actor[-1].weight.mul_(0.01)
-            self.actor[-1].bias.zero_()
-            self.actor[-1].bias[-1] = torch.logit(torch.tensor(p.init_terminate_prob))
-
-    @torch.no_grad()
-    def reset_terminate(self, prob: float) -> None:
-        """Make the terminate head say `prob` in every state, forgetting when to stop; moves are kept."""
-        self.actor[-1].weight[-1].zero_()
-        self.actor[-1].bias[-1] = torch.logit(torch.tensor(prob))
-
-    def normalise(self, obs: torch.Tensor) -> torch.Tensor:
-        return ((obs - self.obs_mean) / (self.obs_var + 1e-8).sqrt()).clamp(-self.obs_clip, self.obs_clip)
-
-    @torch.no_grad()
-    def update_obs_stats(self, obs: torch.Tensor) -> None:
-        """Merge a batch's mean and variance into the running ones (the parallel formula of Chan,
-        Golub and LeVeque 1979)."""
-        n, mean, var = len(obs), obs.mean(0), obs.var(0, unbiased=False)
-        total = self.obs_count + n
-        delta = mean - self.obs_mean
-        self.obs_var.copy_((self.obs_var * self.obs_count + var * n + delta ** 2 * self.obs_count * n / total) / total)
-        self.obs_mean.add_(delta * n / total)
-        self.obs_count.copy_(total)
-
-    def actor_output(self, obs: torch.Tensor) -> torch.Tensor:
-        """(N, 6): the Gaussian's five means, then the terminate logit."""
-        return self.actor(self.normalise(obs))
-
-    def distributions(self, obs: torch.Tensor):
-        out = self.actor_output(obs)
-        return (torch.distributions.Normal(out[:, :self.moves], self.log_std.exp()),
-                torch.distributions.Bernoulli(logits=out[:, self.moves]))
-
-    def value(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.critic(self.normalise(obs))[:, 0]
-
-    def evaluate(self, obs: torch.Tensor, raw: torch.Tensor):
-        """Log-probability and entropy of raw actions (5 displacements, terminate bit) under the policy."""
-        move, stop = self.distributions(obs)
-        logp = move.log_prob(raw[:, :self.moves]).sum(1) + stop.log_prob(raw[:, self.moves])
-        return logp, move.entropy().sum(1) + stop.entropy()
-
-
-def env_actions(raw: np.ndarray) -> np.ndarray:
-    """Raw policy samples -> the env's Box: displacements clipped to [-1, 1], terminate as +-1."""
-    moves, stop = np.clip(raw[:, :ACTION_MOVES], -1, 1), np.where(raw[:, ACTION_MOVES:] > 0.5, 1.0, -1.0)
-    return np.concatenate([moves, stop], 1).astype(np.float32)
-
-
-class PPOAgent:
-    """A trained policy as an agent for eval and demo: the Gaussian's mean, terminate when p > 0.5."""
-
-    def __init__(self, checkpoint: dict):
-        self.model = ActorCritic(checkpoint["obs_dim"], ppo_settings(checkpoint["settings"]))
-        self.model.load_state_dict(checkpoint["model"])
-        self.model.eval()
-
-    def reset(self, view: AgentView) -> None:
-        pass
-
-    def act(self, obs, view: AgentView) -> np.ndarray:
-        with torch.no_grad():
-            out = self.model.actor_output(torch.as_tensor(obs, dtype=torch.float32)[None]).numpy()
-        out[:, -1] = out[:, -1] > 0.0   # p > 0.5
-        return env_actions(out)[0]
-
 
 def gae(rewards, values, dones, last_value, gamma: float, lam: float):
     """Generalised advantage estimation (Schulman et al. 2016, "High-Dimensional Continuous Control Using
@@ -1773,7 +1877,7 @@ def gae(rewards, values, dones, last_value, gamma: float, lam: float):
     return advantages, advantages + values
 
 
-def ppo_update(model: ActorCritic, optimizer, batch: dict, p: PPOSettings, generator) -> dict:
+def ppo_update(model: ActorCritic, optimizer, batch: dict, ppo: PPOSettings, generator) -> dict:
     """One PPO update (Schulman et al. 2017, "Proximal Policy Optimization Algorithms", eq. 7 and 9):
     epochs over shuffled minibatches of the clipped surrogate, a value loss and an entropy bonus.
 
@@ -1783,20 +1887,20 @@ def ppo_update(model: ActorCritic, optimizer, batch: dict, p: PPOSettings, gener
     adv = batch["advantages"]
     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
     stats = dict(policy_loss=[], value_loss=[], entropy=[], approx_kl=[], clip_fraction=[])
-    for _ in range(p.epochs):
+    for _ in range(ppo.epochs):
         order = torch.randperm(n, generator=generator)
-        for start in range(0, n, p.minibatch):
-            i = order[start:start + p.minibatch]
+        for start in range(0, n, ppo.minibatch):
+            i = order[start:start + ppo.minibatch]
             logp, entropy = model.evaluate(batch["obs"][i], batch["raw"][i])
             log_ratio = logp - batch["logp"][i]
             ratio = log_ratio.exp()
             # L^CLIP: the ratio's gain is cut off once it leaves [1 - clip, 1 + clip] in the advantage's favour
-            policy_loss = -torch.min(ratio * adv[i], ratio.clamp(1 - p.clip, 1 + p.clip) * adv[i]).mean()
+            policy_loss = -torch.min(ratio * adv[i], ratio.clamp(1 - ppo.clip, 1 + ppo.clip) * adv[i]).mean()
             value_loss = 0.5 * (model.value(batch["obs"][i]) - batch["returns"][i]).pow(2).mean()
-            loss = policy_loss + p.value_coef * value_loss - p.entropy_coef * entropy.mean()
+            loss = policy_loss + ppo.value_coef * value_loss - ppo.entropy_coef * entropy.mean()
             optimizer.zero_grad()
             loss.backward()
-            nn.utils.clip_grad_norm_(model.parameters(), p.max_grad_norm)
+            nn.utils.clip_grad_norm_(model.parameters(), ppo.max_grad_norm)
             optimizer.step()
             with torch.no_grad():
                 stats["policy_loss"].append(policy_loss.item())
@@ -1805,7 +1909,7 @@ def ppo_update(model: ActorCritic, optimizer, batch: dict, p: PPOSettings, gener
                 # KL(old || new) estimated as E[(r - 1) - log r], unbiased and never negative (the "k3"
                 # estimator of J. Schulman, "Approximating KL Divergence", 2020)
                 stats["approx_kl"].append(((ratio - 1) - log_ratio).mean().item())
-                stats["clip_fraction"].append(((ratio - 1).abs() > p.clip).float().mean().item())
+                stats["clip_fraction"].append(((ratio - 1).abs() > ppo.clip).float().mean().item())
     return {k: float(np.mean(v)) for k, v in stats.items()}
 
 
@@ -1843,39 +1947,61 @@ def collect_rollout(env, model: ActorCritic, steps: int, env_seed: int, sample_s
     return dict(batch, last_value=last_value, episodes=episodes)
 
 
-def ignore_sigint() -> None:
-    """In a worker process: Ctrl-C reaches the whole process group, and the parent alone handles it."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-ROLLOUT_WORKER: dict = {}   # per worker process: its env and its copy of the policy
-
-
-def start_rollout_worker(make_env, obs_dim: int, p: PPOSettings, in_pool: bool = False) -> None:
-    torch.set_num_threads(1)   # one env and a small MLP per process: threads would only contend
-    if in_pool:
-        ignore_sigint()
-    ROLLOUT_WORKER.update(env=make_env(), model=ActorCritic(obs_dim, p))
-
-
-def run_rollout_worker(weights: dict, steps: int, env_seed: int, sample_seed: int) -> dict:
-    """One rollout stream of a batch, with the current weights. Each worker process steps its own env
-    at its own pace: lock-step workers would all wait for whichever is resetting a scene (a pile: 80 ms)."""
-    model = ROLLOUT_WORKER["model"]
-    model.load_state_dict(weights)
-    return collect_rollout(ROLLOUT_WORKER["env"], model, steps, env_seed, sample_seed)
-
-
 def derived_seed(*key: int) -> int:
-    """A 32-bit seed for (run seed, update, worker, purpose): distinct streams, reproducible."""
+    """A 32-bit seed for (run seed, update, stream, purpose): distinct streams, reproducible."""
     return int(np.random.SeedSequence(list(key)).generate_state(1)[0])
 
 
-def read_checkpoint(path: Path) -> dict:
-    """Load an objfind checkpoint with torch.load(weights_only=True), or explain in one line why not."""
+def ppo_iteration(model: ActorCritic, optimizer, ppo: PPOSettings, collect, seed: int, update: int) -> tuple:
+    """One PPO iteration, as CleanRL lays it out: collect a batch, advantages, update, statistics.
+
+    `collect(weights, update)` returns one rollout per stream (`collect_rollout`), each from a reset
+    and sampling seeded by (seed, update, stream), so an update depends on the weights, the optimizer
+    and its index alone. Returns the log's row and the finished episodes.
+    """
+    # 1. collect with the current weights, time-major: (T, streams, ...)
+    parts = collect(model.state_dict(), update)
+    episodes = [e for part in parts for e in part["episodes"]]
+    batch = {k: np.stack([part[k] for part in parts], axis=1)
+             for k in ("obs", "raw", "logp", "values", "rewards", "dones")}
+    last_value = np.array([part["last_value"] for part in parts], np.float32)
+    # 2. advantages and the critic's targets
+    advantages, returns = gae(batch["rewards"] * ppo.reward_scale, batch["values"], batch["dones"], last_value,
+                              ppo.gamma, ppo.gae_lambda)
+    n = advantages.size
+    flat = dict(obs=torch.as_tensor(batch["obs"].reshape(n, -1)), raw=torch.as_tensor(batch["raw"].reshape(n, -1)),
+                logp=torch.as_tensor(batch["logp"].reshape(n)), advantages=torch.as_tensor(advantages.reshape(n)),
+                returns=torch.as_tensor(returns.reshape(n)))
+    # 3. the update, then the observation statistics (the update's ratios need the rollout's scale)
+    stats = ppo_update(model, optimizer, flat, ppo, torch.Generator().manual_seed(derived_seed(seed, update)))
+    model.update_obs_stats(flat["obs"])
+    # 4. what the log shows of the sampled policy
+    mean = lambda key: float(np.mean([e[key] for e in episodes])) if episodes else float("nan")
+    row = {"env_steps": n, "episodes": len(episodes), "return": mean("ret"), "success": mean("success"),
+           "episode_length": mean("length"), **stats}
+    return row, episodes
+
+
+# ================================================================================================
+# The paper's system ends here. What follows is the harness: files, training runs, evaluation and
+# Table II, the demo, bench, soak and the command line.
+# ================================================================================================
+
+# ================================================================================================
+# Files: checkpoints read and checked in one place, outputs written atomically, logs and curves.
+# ================================================================================================
+
+RUN_FIELDS = ("optimizer", "update", "env_steps", "wall_s", "seed")   # what a checkpoint of a run adds
+
+
+def read_checkpoint(path: Path, run: bool = False, state_size: int | None = None) -> dict:
+    """An objfind checkpoint, loaded with torch.load(weights_only=True) and checked once, here, or one
+    line saying why not: its PPO settings, a network they build, finite weights; with `run`, the state
+    a resumed run needs; with `state_size`, a network that takes that many values."""
+    if path.is_dir():
+        raise UsageError(f"{str(path)!r} is a folder, not a checkpoint")
     if not path.is_file():
         raise UsageError(f"checkpoint {str(path)!r} not found")
-    import torch
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:   # truncated, not a torch file, or unsafe to unpickle
@@ -1886,13 +2012,17 @@ def read_checkpoint(path: Path) -> dict:
     if missing:
         raise UsageError(f"{str(path)!r} is an objfind checkpoint without {', '.join(missing)}")
     try:
-        p = ppo_settings(checkpoint["settings"])
-        ActorCritic(int(checkpoint["obs_dim"]), p).load_state_dict(checkpoint["model"])
+        ActorCritic(int(checkpoint["obs_dim"]), ppo_settings(checkpoint["settings"])).load_state_dict(checkpoint["model"])
     except (UsageError, TypeError, ValueError, RuntimeError) as error:
         reason = str(error).strip().splitlines()[0]
         raise UsageError(f"{str(path)!r} does not hold this network ({reason[:200]})") from None
     if not all(torch.isfinite(t).all() for t in checkpoint["model"].values() if t.is_floating_point()):
         raise UsageError(f"{str(path)!r} holds non-finite weights")
+    if state_size is not None and checkpoint["obs_dim"] != state_size:
+        raise UsageError(f"{str(path)!r} is for a {checkpoint['obs_dim']}-value state, not the {state_size} of Fig. 2")
+    missing = [k for k in RUN_FIELDS if k not in checkpoint]
+    if run and missing:
+        raise UsageError(f"--resume: the checkpoint has no {', '.join(missing)}: it holds weights, not a run")
     return checkpoint
 
 
@@ -2005,8 +2135,8 @@ def plot_learning_curve(rows: list, path: Path) -> None:
     to_px = lambda v: left + v / x_right * plot_w
     panels = (("success", "success (%) of the sampled policy, one point per PPO update", 100.0, (40, 150, 40)),
               ("episode_length", "mean episode length (steps)", None, (40, 80, 200)))   # BGR
-    for p, (key, title, scale, colour) in enumerate(panels):
-        y0 = top + p * (panel_h + 30)                     # the panel's top edge
+    for panel, (key, title, scale, colour) in enumerate(panels):
+        y0 = top + panel * (panel_h + 30)                     # the panel's top edge
         y = np.array([float(r[key]) for r in rows]) * (scale or 1.0)
         ok = np.isfinite(y)
         y_ticks = nice_ticks(100.0 if scale else max(1.0, float(np.nanmax(y)) if ok.any() else 1.0), 4)
@@ -2021,7 +2151,7 @@ def plot_learning_curve(rows: list, path: Path) -> None:
         for t in x_ticks:
             px = int(round(to_px(t)))
             cv2.line(image, (px, y0 + panel_h), (px, y0 + panel_h + 4), black, 1)
-            if p == 1:                                     # x tick labels under the lower panel only
+            if panel == 1:                                     # x tick labels under the lower panel only
                 text = steps_label(t)
                 (tw, th), _ = cv2.getTextSize(text, font, 0.4, 1)
                 cv2.putText(image, text, (px - tw // 2, y0 + panel_h + 8 + th), font, 0.4, black, 1, cv2.LINE_AA)
@@ -2032,6 +2162,53 @@ def plot_learning_curve(rows: list, path: Path) -> None:
         cv2.putText(image, title, (left, y0 - 9), font, 0.5, colour, 1, cv2.LINE_AA)
     cv2.putText(image, "env steps", (left + plot_w // 2 - 35, height - 10), font, 0.5, black, 1, cv2.LINE_AA)
     write_image(path, image[:, :, ::-1])
+
+
+# ================================================================================================
+# Training runs: PPO's loop (ppo_iteration) with what a long run needs around it: worker processes,
+# resume, checkpoints and logs written as it goes, Ctrl-C and SIGTERM.
+# ================================================================================================
+
+def ignore_sigint() -> None:
+    """In a worker process: Ctrl-C reaches the whole process group, and the parent alone handles it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+ROLLOUT_WORKER: dict = {}   # per worker process: its env and its copy of the policy
+
+
+def start_rollout_worker(make_env, obs_dim: int, ppo: PPOSettings, in_pool: bool = False) -> None:
+    torch.set_num_threads(1)   # one env and a small MLP per process: threads would only contend
+    if in_pool:
+        ignore_sigint()
+    ROLLOUT_WORKER.update(env=make_env(), model=ActorCritic(obs_dim, ppo))
+
+
+def run_rollout_worker(weights: dict, steps: int, env_seed: int, sample_seed: int) -> dict:
+    """One rollout stream of a batch, with the current weights. Each worker process steps its own env
+    at its own pace: lock-step workers would all wait for whichever is resetting a scene (a pile: 80 ms)."""
+    model = ROLLOUT_WORKER["model"]
+    model.load_state_dict(weights)
+    return collect_rollout(ROLLOUT_WORKER["env"], model, steps, env_seed, sample_seed)
+
+
+def rollout_collector(make_env, env, obs_dim: int, ppo: PPOSettings, streams: int, processes: int, seed: int):
+    """`collect(weights, update)` for ppo_iteration, serving the run's streams from `processes` worker
+    processes (each with its own env) or from this process with `env`; and a function that closes them."""
+    steps = max(1, ppo.batch_steps // streams)
+
+    def jobs(weights: dict, update: int) -> list:
+        return [(weights, steps, derived_seed(seed, update, w, 0), derived_seed(seed, update, w, 1))
+                for w in range(streams)]
+
+    if processes > 1:
+        import multiprocessing
+        env.close()
+        pool = multiprocessing.get_context("spawn").Pool(processes, start_rollout_worker, (make_env, obs_dim, ppo, True))
+        return (lambda weights, update: pool.starmap(run_rollout_worker, jobs(weights, update))), pool.terminate
+    start_rollout_worker(lambda: env, obs_dim, ppo)
+    return (lambda weights, update: [run_rollout_worker(*job) for job in jobs(weights, update)],
+            lambda: ROLLOUT_WORKER.pop("env").close())
 
 
 class TrainingInterrupted(Exception):
@@ -2046,127 +2223,87 @@ def raise_keyboard_interrupt(signum, frame):
     raise KeyboardInterrupt   # SIGTERM (a scheduler's stop) ends training as Ctrl-C does
 
 
-def train(make_env, out_dir: Path, total_steps: int, p: PPOSettings = PPOSettings(), workers: int = 1,
-          seed: int = 0, resume: bool = False, progress: bool = True, meta: dict | None = None,
+def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSettings(), workers: int = 1,
+          seed: int = 0, resume: dict | None = None, progress: bool = True, meta: dict | None = None,
           init: dict | None = None, fresh_terminate: bool = False) -> dict:
     """PPO with `workers` processes, each with its own make_env(); writes out_dir/log.csv every update
-    and out_dir/checkpoint.pt every few updates, at the last one and when interrupted.
+    and out_dir/checkpoint.pt (and curve.png) every few updates, at the last one and when interrupted.
 
-    A batch is collected in rollout streams, as many as the run's first `workers`, each from a reset
-    and sampling seeded by (seed, update, stream): an update is a function of the weights, the
-    optimizer and its index, so `resume` repeats the uninterrupted run exactly, with any worker count.
-    `init`, a checkpoint, warm-starts a new run from its policy, critic and observation statistics;
-    with fresh_terminate, the terminate head starts afresh (how I3DE starts from A3DE: weights/README.md)."""
+    `resume`, the run's checkpoint (`read_checkpoint(..., run=True)`), continues it exactly, with its
+    settings and rollout streams (as many as its first `workers`) and any worker count. `init`, a
+    checkpoint, warm-starts a new run from its policy, critic and observation statistics; with
+    fresh_terminate the terminate head starts afresh (how I3DE starts from A3DE: weights/README.md).
+    """
     writable_folder(out_dir)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
-    if resume and not ckpt_path.exists():
-        raise UsageError(f"--resume: no checkpoint in {str(out_dir)!r}")
-    checkpoint = read_checkpoint(ckpt_path) if resume else None
-    if checkpoint is not None:
-        p = ppo_settings(checkpoint["settings"])   # a run keeps the settings it started with
+    streams = workers
+    if resume is not None:   # a run keeps the settings, seed and streams it started with
+        ppo, seed, streams = ppo_settings(resume["settings"]), resume["seed"], resume.get("rollout_streams", workers)
+        meta = {**({"init": resume["init"]} if "init" in resume else {}), **(meta or {})}
     env = make_env()   # the single worker's env, or only asked for the observation size
     obs_dim = env.observation_space.shape[0]
     torch.manual_seed(seed)
-    model = ActorCritic(obs_dim, p)
-    optimizer = torch.optim.Adam(model.parameters(), lr=p.learning_rate, eps=p.adam_eps)
+    model = ActorCritic(obs_dim, ppo)
+    optimizer = torch.optim.Adam(model.parameters(), lr=ppo.learning_rate, eps=ppo.adam_eps)
     update, env_steps, wall_s, log_rows = 0, 0, 0.0, []
-    if init is not None and not resume:
-        try:   # a fresh optimizer: Adam's moments belong to the old task
+    if resume is not None:
+        if resume["obs_dim"] != obs_dim:
+            raise UsageError(f"--resume: the checkpoint is for a {resume['obs_dim']}-value state, not {obs_dim}")
+        model.load_state_dict(resume["model"])
+        optimizer.load_state_dict(resume["optimizer"])
+        update, env_steps, wall_s = resume["update"], resume["env_steps"], resume["wall_s"]
+        log_rows = [r for r in read_train_log(log_path) if int(r["update"]) <= update]   # drop the lost tail
+    elif init is not None:   # a fresh optimizer: Adam's moments belong to the old task
+        try:
             model.load_state_dict(init["model"])
-        except (KeyError, RuntimeError):
+        except RuntimeError:
             raise UsageError("--init: the checkpoint's network does not match these settings") from None
         if fresh_terminate:
-            model.reset_terminate(p.init_terminate_prob)
-    streams = workers
-    if checkpoint is not None:
-        missing = [k for k in ("optimizer", "update", "env_steps", "wall_s", "seed") if k not in checkpoint]
-        if missing:
-            raise UsageError(f"--resume: the checkpoint has no {', '.join(missing)}: it holds weights, not a run")
-        if checkpoint["obs_dim"] != obs_dim:
-            raise UsageError(f"--resume: the checkpoint is for a {checkpoint['obs_dim']}-value state, not {obs_dim}")
-        model.load_state_dict(checkpoint["model"])
-        optimizer.load_state_dict(checkpoint["optimizer"])
-        update, env_steps, wall_s, seed = (checkpoint[k] for k in ("update", "env_steps", "wall_s", "seed"))
-        streams = checkpoint.get("rollout_streams", workers)   # written by every run since streams exist
-        log_rows = [r for r in read_train_log(log_path) if int(r["update"]) <= update]   # drop the lost tail
-        meta = {**({"init": checkpoint["init"]} if "init" in checkpoint else {}), **(meta or {})}
-    steps_per_stream = max(1, p.batch_steps // streams)
-    processes = min(workers, streams)
-    if processes > 1:
-        import multiprocessing
-        env.close()
-        pool = multiprocessing.get_context("spawn").Pool(processes, start_rollout_worker,
-                                                         (make_env, obs_dim, p, True))
-    else:
-        start_rollout_worker(lambda: env, obs_dim, p)
+            model.reset_terminate(ppo.init_terminate_prob)
+    collect, close_workers = rollout_collector(make_env, env, obs_dim, ppo, streams, min(workers, streams), seed)
 
     def snapshot() -> dict:
         """The checkpoint of the update just finished (copies: the next update changes the tensors)."""
         return dict(format="objfind-ppo", model=copy.deepcopy(model.state_dict()),
                     optimizer=copy.deepcopy(optimizer.state_dict()), update=update, env_steps=env_steps,
-                    wall_s=wall_s, seed=seed, obs_dim=obs_dim, settings=vars(p).copy(), rollout_streams=streams,
+                    wall_s=wall_s, seed=seed, obs_dim=obs_dim, settings=vars(ppo).copy(), rollout_streams=streams,
                     **(meta or {}))
 
-    latest, saved_update = None, update
+    latest, saved_update, recent = None, update, []
     bar = tqdm(total=total_steps, initial=min(env_steps, total_steps), unit="step", disable=not progress,
                file=sys.stderr, desc="train")
     import threading
     handles_sigterm = threading.current_thread() is threading.main_thread()
     previous_handler = signal.signal(signal.SIGTERM, raise_keyboard_interrupt) if handles_sigterm else None
-    recent = []
     try:
         while env_steps < total_steps:
             t0 = time.perf_counter()
-            jobs = [(model.state_dict(), steps_per_stream, derived_seed(seed, update, w, 0),
-                     derived_seed(seed, update, w, 1)) for w in range(streams)]
-            parts = (pool.starmap(run_rollout_worker, jobs) if processes > 1
-                     else [run_rollout_worker(*job) for job in jobs])
-            episodes = [e for part in parts for e in part["episodes"]]
-            batch = {k: np.stack([part[k] for part in parts], axis=1)      # (T, streams, ...) time-major
-                     for k in ("obs", "raw", "logp", "values", "rewards", "dones")}
-            batch["last_value"] = np.array([part["last_value"] for part in parts], np.float32)
-            advantages, returns = gae(batch["rewards"] * p.reward_scale, batch["values"], batch["dones"],
-                                      batch["last_value"], p.gamma, p.gae_lambda)
-            n = steps_per_stream * streams
-            flat = dict(obs=torch.as_tensor(batch["obs"].reshape(n, obs_dim)),
-                        raw=torch.as_tensor(batch["raw"].reshape(n, -1)),
-                        logp=torch.as_tensor(batch["logp"].reshape(n)),
-                        advantages=torch.as_tensor(advantages.reshape(n)),
-                        returns=torch.as_tensor(returns.reshape(n)))
-            stats = ppo_update(model, optimizer, flat, p, torch.Generator().manual_seed(derived_seed(seed, update)))
-            model.update_obs_stats(flat["obs"])   # after the update, whose ratios need the rollout's scale
-            update += 1
-            env_steps += n
-            wall_s += time.perf_counter() - t0
+            row, episodes = ppo_iteration(model, optimizer, ppo, collect, seed, update)
+            update, env_steps, wall_s = update + 1, env_steps + row["env_steps"], wall_s + time.perf_counter() - t0
             latest = snapshot()
-            recent = (recent + episodes)[-PROGRESS_EPISODES:]
-            mean = lambda key: float(np.mean([e[key] for e in episodes])) if episodes else float("nan")
-            row = dict(update=update, env_steps=env_steps, episodes=len(episodes), success=mean("success"),
-                       episode_length=mean("length"), **stats, wall_s=wall_s)
-            row["return"] = mean("ret")
+            row.update(update=update, env_steps=env_steps, wall_s=wall_s)
             log_rows.append({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
             write_csv(log_rows, log_path, TRAIN_LOG_FIELDS)
-            if update % p.checkpoint_every == 0 or env_steps >= total_steps:
+            if update % ppo.checkpoint_every == 0 or env_steps >= total_steps:
                 save_checkpoint(ckpt_path, latest)
                 saved_update = update
                 plot_learning_curve(log_rows, out_dir / "curve.png")
+            recent = (recent + episodes)[-PROGRESS_EPISODES:]
             bar.update(min(env_steps, total_steps) - bar.n)
-            bar.set_postfix(steps_per_s=f"{n / (time.perf_counter() - t0):.0f}",
+            bar.set_postfix(steps_per_s=f"{row['env_steps'] / (time.perf_counter() - t0):.0f}",
                             success=f"{np.mean([e['success'] for e in recent]) if recent else 0:.2f}")
     except KeyboardInterrupt:
         if latest is not None and latest["update"] > saved_update:
             save_checkpoint(ckpt_path, latest)
             write_csv([r for r in log_rows if int(r["update"]) <= latest["update"]], log_path, TRAIN_LOG_FIELDS)
             plot_learning_curve(log_rows, out_dir / "curve.png")
-        kept = latest or checkpoint
+        kept = latest or resume
         raise TrainingInterrupted(kept["update"] if kept else 0, kept["env_steps"] if kept else 0, ckpt_path) from None
     finally:
         bar.close()
         if handles_sigterm:
             signal.signal(signal.SIGTERM, previous_handler)
-        if processes > 1:
-            pool.terminate()
-        ROLLOUT_WORKER.get("env") and ROLLOUT_WORKER.pop("env").close()
+        close_workers()
     return dict(update=update, env_steps=env_steps, model=model, log=log_rows)
 
 
@@ -2201,49 +2338,43 @@ def default_weights(agent: str, task: str) -> Path:
     return Path(__file__).resolve().parent / "weights" / (f"{agent}-large.pt" if task == "ap-large" else f"{agent}.pt")
 
 
-def load_agent(path: Path) -> PPOAgent:
-    """A trained policy from its checkpoint (torch.load with weights_only=True), as an eval agent."""
-    checkpoint = read_checkpoint(Path(path))
-    if checkpoint["obs_dim"] != STATE_SIZE:
-        raise UsageError(f"{str(path)!r} is for a {checkpoint['obs_dim']}-value state, not the {STATE_SIZE} of Fig. 2")
-    return PPOAgent(checkpoint)
+def learned_policy(agent: str, task: str, weights: Path | None = None) -> dict:
+    """What a learned agent plays, read and checked once per command: --weights, or the shipped file;
+    only the policy (no optimizer state) travels on to worker processes."""
+    checkpoint = read_checkpoint(Path(weights or default_weights(agent, task)), state_size=STATE_SIZE)
+    return {k: checkpoint[k] for k in ("model", "settings", "obs_dim")}
 
 
-def make_agent(name: str, seed: int, weights: Path | None = None, task: str = "ap"):
-    """A fresh agent for one episode, its randomness seeded by the episode's seed."""
-    if name in LEARNED:
-        return load_agent(weights or default_weights(name, task))
-    agent = BASELINES[name]()
-    if hasattr(agent, "rng"):
-        agent.rng = np.random.default_rng(seed)
-    return agent
+def make_agent(name: str, cfg: Settings, seed: int, policy: dict | None = None):
+    """A fresh agent for one episode of a world with these settings, its randomness seeded by the episode."""
+    return PPOAgent(policy) if name in LEARNED else BASELINES[name](cfg, seed)
 
 
 def run_episode(env: ObjectFindingEnv, agent, seed: int) -> dict:
     """One episode on scene `seed`; returns its row of the evaluation CSV."""
-    obs, info = env.reset(seed=seed)
-    agent.reset(env.agent_view())
+    _, info = env.reset(seed=seed)
+    agent.reset(env.searcher, env.gripper_pose())
     decide_s, done = 0.0, False
     while not done:
-        view = env.agent_view()
+        T_world_tool = env.gripper_pose()
         t0 = time.perf_counter()
-        action = agent.act(obs, view)
+        action = agent.act(env.searcher, T_world_tool)
         decide_s += time.perf_counter() - t0
-        obs, reward, done, _, info = env.step(action)
+        _, reward, done, _, info = env.step(action)
     return dict(seed=seed, target_present=info["target_present"], success=info["success"], steps=info["steps"],
                 target_seen_fraction=round(info["target_seen_fraction"], 4),
                 explored_fraction=round(info["explored_fraction"], 4),
                 decision_ms=round(1e3 * decide_s / info["steps"], 3))
 
 
-def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list, weights: Path | None = None,
+def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list, policy: dict | None = None,
                    overrides: dict | None = None) -> list:
     """Episodes of one worker process: one env, a fresh baseline per episode (its rng seeded by the
-    episode), and a learned agent loaded once (its policy is deterministic and keeps no state)."""
+    episode), and a learned agent made once (its policy is deterministic and keeps no state)."""
     env = ObjectFindingEnv(task, scene, **(overrides or {}))
-    learned = make_agent(agent_name, seeds[0], weights, task) if agent_name in LEARNED else None
+    learned = PPOAgent(policy) if agent_name in LEARNED else None
     try:
-        return [run_episode(env, learned or make_agent(agent_name, seed, weights, task), seed) for seed in seeds]
+        return [run_episode(env, learned or make_agent(agent_name, env.cfg, seed), seed) for seed in seeds]
     finally:
         env.close()
 
@@ -2252,10 +2383,11 @@ EVAL_CHUNK = 5   # episodes per job of a worker process: small jobs keep all wor
 
 
 def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 0, workers: int = 1,
-             progress: bool = True, weights: Path | None = None, overrides: dict | None = None) -> list:
+             progress: bool = True, policy: dict | None = None, overrides: dict | None = None) -> list:
     """Paired episodes: episode i is scene seed + i for every agent, in worlds with these Settings
-    overrides (an ablation). Rows in seed order."""
-    make_agent(agent_name, seed, weights, task)   # fail early, in the parent, on an agent that cannot run
+    overrides (an ablation). A learned agent plays `policy`, or its shipped weights. Rows in seed order."""
+    if agent_name in LEARNED and policy is None:
+        policy = learned_policy(agent_name, task)
     seeds = list(range(seed, seed + episodes))
     chunks = [seeds[i:i + EVAL_CHUNK] for i in range(0, episodes, EVAL_CHUNK)]
     bar = tqdm(total=episodes, desc=f"{agent_name} {task}/{scene}", unit="ep", disable=not progress,
@@ -2263,12 +2395,12 @@ def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 
     rows = []
     if workers <= 1:
         for chunk in chunks:
-            rows += evaluate_chunk(agent_name, task, scene, chunk, weights, overrides)
+            rows += evaluate_chunk(agent_name, task, scene, chunk, policy, overrides)
             bar.update(len(chunk))
     else:
         import multiprocessing
         with multiprocessing.get_context("spawn").Pool(workers, ignore_sigint) as pool:
-            jobs = [pool.apply_async(evaluate_chunk, (agent_name, task, scene, c, weights, overrides)) for c in chunks]
+            jobs = [pool.apply_async(evaluate_chunk, (agent_name, task, scene, c, policy, overrides)) for c in chunks]
             for job in jobs:
                 rows += job.get()
                 bar.update(len(rows) - bar.n)
@@ -2396,21 +2528,22 @@ def label(image: np.ndarray, text: str) -> np.ndarray:
 DETECTION_OVERLAY_RGB = (255, 0, 255)   # magenta: no scene object has it (TARGET_RGBA, OTHER_RGBA)
 
 
-def wrist_panel(rgb: np.ndarray, detections: np.ndarray, s: Settings) -> np.ndarray:
+def wrist_panel(rgb: np.ndarray, detections: np.ndarray, detection_threshold: float) -> np.ndarray:
     """The wrist camera image, upscaled, with the noisy detections above the threshold painted magenta."""
     image = cv2.resize(rgb, PANEL, interpolation=cv2.INTER_NEAREST)
-    confident = (detections > s.detection_threshold).astype(np.uint8)
+    confident = (detections > detection_threshold).astype(np.uint8)
     mask = cv2.resize(confident, PANEL, interpolation=cv2.INTER_NEAREST) > 0
     image[mask] = (0.3 * image[mask] + 0.7 * np.array(DETECTION_OVERLAY_RGB)).astype(np.uint8)
     return label(image, "wrist camera + detections (magenta)")
 
 
-def volume_panel(volume: TSDFVolume, T_world_tool: np.ndarray, s: Settings) -> np.ndarray:
+def volume_panel(searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
     """Top view of the volume: unobserved dark, observed light, occupied shaded by height, detected red."""
+    volume = searcher.volume
     observed = volume.weight.max(axis=2) > 0                               # (nx, ny)
     inside = (volume.weight > 0) & (volume.tsdf < 0)                       # behind a surface: an object
     height = np.where(inside.any(axis=2), inside.shape[2] - np.argmax(inside[:, :, ::-1], axis=2), 0)
-    detected = (volume.detections > s.detection_threshold).any(axis=2)
+    detected = (volume.detections > searcher.detection_threshold).any(axis=2)
     top = np.full(observed.shape + (3,), 45, np.uint8)
     top[observed] = (215, 215, 210)
     occupied = height > 0
@@ -2426,7 +2559,7 @@ def volume_panel(volume: TSDFVolume, T_world_tool: np.ndarray, s: Settings) -> n
                         int(side - (xy[1] - volume.origin[1]) / volume.voxel_m * side / n))
     ee = T_world_tool[:3, 3]
     yaw, _ = yaw_roll_of(T_world_tool[:3, :3])
-    tip = ee[:2] + s.max_step_m * np.array([np.cos(yaw), np.sin(yaw)])   # one max step ahead
+    tip = ee[:2] + searcher.max_step_m * np.array([np.cos(yaw), np.sin(yaw)])   # one max step ahead
     cv2.arrowedLine(image, to_px(ee), to_px(tip), (20, 120, 255), 2, tipLength=0.4)
     panel = np.full((PANEL[1], PANEL[0], 3), 255, np.uint8)
     panel[:, (PANEL[0] - side) // 2:(PANEL[0] - side) // 2 + side] = image
@@ -2466,23 +2599,26 @@ def bins_panel(state: np.ndarray) -> np.ndarray:
 
 def demo_frame(env: ObjectFindingEnv, state: np.ndarray, text: str) -> np.ndarray:
     """The four pictures of one moment side by side, (240, 1280, 3) RGB."""
-    views = env.last_views
+    searcher = env.searcher
     return np.concatenate([label(env.outside_view(*PANEL), text),
-                           wrist_panel(views["rgb"], views["detections"], env.s),
-                           volume_panel(env.volume, env.gripper_pose(), env.s), bins_panel(state)], axis=1)
+                           wrist_panel(env.view.rgb, env.view.detections, searcher.detection_threshold),
+                           volume_panel(searcher, env.gripper_pose()), bins_panel(state)], axis=1)
 
 
 def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
-             weights: Path | None = None) -> tuple[Path, Path, dict]:
-    """One episode to an MP4 (every step) and a PNG contact sheet (four moments of it)."""
-    agent = make_agent(agent_name, seed, weights, task)
+             policy: dict | None = None) -> tuple[Path, Path, dict]:
+    """One episode to an MP4 (every step) and a PNG contact sheet (four moments of it); a learned agent
+    plays `policy`, or its shipped weights."""
+    if agent_name in LEARNED and policy is None:
+        policy = learned_policy(agent_name, task)
     env = ObjectFindingEnv(task, scene, seed=seed)
+    agent = make_agent(agent_name, env.cfg, seed, policy)
     state, info = env.reset()
-    agent.reset(env.agent_view())
+    agent.reset(env.searcher, env.gripper_pose())
     frames = [demo_frame(env, state, f"{task}/{scene} seed {seed}: start")]
     done = False
     while not done:
-        state, reward, done, _, info = env.step(agent.act(state, env.agent_view()))
+        state, reward, done, _, info = env.step(agent.act(env.searcher, env.gripper_pose()))
         status = (f"step {info['steps']}: seen {info['target_seen_fraction']:.2f}, "
                   f"explored {info['explored_fraction']:.2f}")
         if done:
@@ -2520,21 +2656,41 @@ def exploring_actions(rng: np.random.Generator, n: int) -> np.ndarray:
     return actions
 
 
+BENCH_STAGES = (("physics", "_drive_gripper"), ("render", "_render"), ("detect", "_detect"),
+                ("integrate", "searcher.observe"), ("encode", "searcher.state"))   # a step's stages, in order
+
+
 def bench_stages(task: str, steps: int, seed: int = 0) -> dict:
-    """Mean milliseconds per stage of one step on task/cubes, over `steps` exploring steps."""
+    """Mean milliseconds per stage of one step on task/cubes, over `steps` exploring steps: each stage's
+    method of the env (or its searcher) is wrapped in a timer, so the step itself carries none."""
     env = ObjectFindingEnv(task, "cubes")
     env.reset(seed=seed + 1000)     # warm-up: the first reset in a process pays one-time costs
-    totals = dict.fromkeys(list(env.timings) + ["step", "reset"], 0.0)
+    totals = dict.fromkeys([stage for stage, _ in BENCH_STAGES] + ["step", "reset"], 0.0)
+    in_step = [False]               # a reset renders, detects, fuses and encodes too: not counted
+
+    def timed(stage, method):
+        def run(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                totals[stage] += (time.perf_counter() - t0) * in_step[0]
+        return run
+
+    for stage, name in BENCH_STAGES:
+        owner = env.searcher if name.startswith("searcher.") else env
+        name = name.removeprefix("searcher.")
+        setattr(owner, name, timed(stage, getattr(owner, name)))
     resets = 1
     t0 = time.perf_counter()
     env.reset(seed=seed)
     totals["reset"] += time.perf_counter() - t0
     for action in exploring_actions(np.random.default_rng(seed), steps):
+        in_step[0] = True
         t0 = time.perf_counter()
         *_, done, _, _ = env.step(action)
         totals["step"] += time.perf_counter() - t0
-        for stage, ms in env.timings.items():
-            totals[stage] += ms / 1e3
+        in_step[0] = False
         if done:
             t0 = time.perf_counter()
             env.reset()
@@ -2546,37 +2702,17 @@ def bench_stages(task: str, steps: int, seed: int = 0) -> dict:
     return means
 
 
-def bench_throughput(task: str, steps: int, workers: int, seed: int = 0) -> float:
-    """Env steps per second (resets included) with `workers` processes, or in-process when workers is 0."""
-    rng = np.random.default_rng(seed)
-    if workers == 0:
-        env = ObjectFindingEnv(task, "cubes", seed=seed)
-        env.reset()
-        t0 = time.perf_counter()
-        for action in exploring_actions(rng, steps):
-            if env.step(action)[2]:
-                env.reset()
-        elapsed = time.perf_counter() - t0
-        env.close()
-        return steps / elapsed
-    fns = [functools.partial(ObjectFindingEnv, task, "cubes", seed + i) for i in range(workers)]
-    envs = gym.vector.AsyncVectorEnv(fns, context="spawn")
-    envs.reset()
-    n = max(1, steps // workers)
+def bench_throughput(task: str, steps: int, seed: int = 0) -> float:
+    """Env steps per second of one process stepping its own env on task/cubes, resets included."""
+    env = ObjectFindingEnv(task, "cubes", seed=seed)
+    env.reset()
     t0 = time.perf_counter()
-    for _ in range(n):
-        envs.step(exploring_actions(rng, workers))
-    elapsed = time.perf_counter() - t0
-    envs.close()
-    return n * workers / elapsed
-
-
-def independent_throughput(task: str, steps: int, workers: int) -> float:
-    """Env steps per second summed over `workers` processes that each step their own env, no lock-step."""
-    import multiprocessing
-    jobs = [(task, steps, 0, seed) for seed in range(workers)]
-    with multiprocessing.get_context("spawn").Pool(workers) as pool:
-        return sum(pool.starmap(bench_throughput, jobs))
+    for action in exploring_actions(np.random.default_rng(seed), steps):
+        if env.step(action)[2]:
+            env.reset()
+    rate = steps / (time.perf_counter() - t0)
+    env.close()
+    return rate
 
 
 def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
@@ -2585,12 +2721,16 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
     Each run replays the same seeded workload, so runs differ only by what else the machine is doing,
     which can only add time: the fastest run is the closest to the code's own cost.
     """
-    stages = ("physics", "render", "detect", "integrate", "encode", "step", "reset")
+    import multiprocessing
+    stages = [stage for stage, _ in BENCH_STAGES] + ["step", "reset"]
     lines = [f"Per-stage milliseconds of one step (mean over {steps} exploring steps, one process, "
-             f"best of {repeats} runs):", "",
-             "| task / scene | " + " | ".join(stages) + " |", "|---" * (len(stages) + 1) + "|"]
-    throughput = []
-    with tqdm(total=2 * 5 * repeats, desc="bench", unit="run", file=sys.stderr) as bar:
+             f"best of {repeats} runs):", "", "| task / scene | " + " | ".join(stages) + " |",
+             "|---" * (len(stages) + 1) + "|"]
+    throughput = ["", f"Env steps per second (resets included, best of {repeats} runs, {os.cpu_count()} cores), "
+                  "each process stepping its own env:", "", f"| task / scene | 1 process | {workers} processes |",
+                  "|---|---|---|"]
+    with (tqdm(total=2 * 3 * repeats, desc="bench", unit="run", file=sys.stderr) as bar,
+          multiprocessing.get_context("spawn").Pool(workers) as pool):
         def best(measure, key=max):
             results = []
             for _ in range(repeats):
@@ -2600,16 +2740,10 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
 
         for task in ("ap", "ip"):
             means = best(lambda: bench_stages(task, steps), key=lambda ms: min(ms, key=lambda m: m["step"]))
-            lines.append(f"| {task} / cubes | " + " | ".join(f"{means[s]:.2f}" for s in stages) + " |")
-            rates = [best(lambda: bench_throughput(task, steps, 0)),
-                     best(lambda: independent_throughput(task, steps, workers))]
-            rates += [best(lambda: bench_throughput(task, steps * n, n)) for n in (workers, 2 * workers)]
-            throughput.append(f"| {task} / cubes | " + " | ".join(f"{r:.0f}" for r in rates) + " |")
-    lines += ["", f"Env steps per second (resets included, best of {repeats} runs), {os.cpu_count()} cores. "
-              "Independent processes each step their own env; lock-step workers step "
-              "through gymnasium.vector.AsyncVectorEnv, one env per process:", "",
-              f"| task / scene | 1 process | {workers} independent processes | {workers} lock-step workers "
-              f"| {2 * workers} lock-step workers |", "|---|---|---|---|---|"]
+            lines.append(f"| {task} / cubes | " + " | ".join(f"{means[stage]:.2f}" for stage in stages) + " |")
+            one = best(lambda: bench_throughput(task, steps))
+            many = best(lambda: sum(pool.starmap(bench_throughput, [(task, steps, seed) for seed in range(workers)])))
+            throughput.append(f"| {task} / cubes | {one:.0f} | {many:.0f} |")
     return "\n".join(lines + throughput)
 
 
@@ -2696,7 +2830,7 @@ def run_soak(episodes: int, workers: int, seed: int = 0, progress: bool = True) 
 
 
 # ================================================================================================
-# Command line: demo, eval, train and bench. Bad input ends with one line and exit status 2.
+# Command line: demo, eval, train, bench and soak. Bad input ends with one line and exit status 2.
 # ================================================================================================
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -2750,20 +2884,18 @@ def information_rule(args) -> dict:
     return {} if args.target_size == "known" else dict(target_size_known=False)
 
 
-def learned_weights(args) -> Path | None:
-    """--weights, which only a learned agent takes; checked before any work."""
-    if args.weights is None:
-        return None
-    if args.agent not in LEARNED:
+def agent_policy(args) -> dict | None:
+    """The policy a learned agent plays (--weights, or its shipped file), read before any work; None for
+    a baseline, which takes no --weights."""
+    if args.weights is not None and args.agent not in LEARNED:
         raise UsageError(f"--weights is for the learned agents ({', '.join(LEARNED)}), not {args.agent}")
-    load_agent(Path(args.weights))
-    return Path(args.weights)
+    return learned_policy(args.agent, args.task, args.weights) if args.agent in LEARNED else None
 
 
 def cmd_demo(args) -> int:
     args.task = args.task or default_task(args.agent)
-    weights, out = learned_weights(args), writable_folder(Path(args.out))
-    png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, out, weights)
+    policy, out = agent_policy(args), writable_folder(Path(args.out))
+    png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, out, policy)
     outcome = "success" if info["success"] else "failure"
     print(f"{args.agent} on {args.task}/{args.scene} seed {args.seed}: {outcome} after {info['steps']} steps "
           f"(target seen {info['target_seen_fraction']:.2f}, explored {info['explored_fraction']:.2f})")
@@ -2831,8 +2963,8 @@ def cmd_eval(args) -> int:
         raise UsageError("eval needs --agent or --table")
     args.task = args.task or default_task(args.agent)
     csv_path = writable_file(Path(args.out)) if args.out else None
-    weights = learned_weights(args)
-    rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, weights=weights,
+    policy = agent_policy(args)
+    rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, policy=policy,
                     overrides=information_rule(args))
     print_summary(args.agent, args.task, args.scene, summarise(rows))
     if csv_path:
@@ -2848,7 +2980,7 @@ def cmd_train(args) -> int:
         out = Path(args.out or Path("runs") / f"{args.task or 'ap'}-{args.scene or 'cubes'}")
         if not (out / "checkpoint.pt").exists():
             raise UsageError(f"--resume: no checkpoint in {str(out)!r}")
-        run = read_checkpoint(out / "checkpoint.pt")
+        run = read_checkpoint(out / "checkpoint.pt", run=True)
         for flag in ("task", "scene"):   # a run continues on what it was trained on, or is refused
             given, stored = getattr(args, flag), run.get(flag)
             if given is not None and stored is not None and given != stored:
@@ -2856,6 +2988,7 @@ def cmd_train(args) -> int:
                                  f"leave --{flag} out to continue it")
             setattr(args, flag, given or stored or ("ap" if flag == "task" else "cubes"))
     else:
+        run = None
         args.task, args.scene = args.task or "ap", args.scene or "cubes"
         if args.out is None:
             writable_folder(Path("runs"))
@@ -2870,11 +3003,11 @@ def cmd_train(args) -> int:
     if init is not None:
         meta["init"] = (f"{Path(args.init).name} ({init.get('task', '?')}/{init.get('scene', '?')}, update "
                         f"{init.get('update', '?')}){', terminate reset' if args.fresh_terminate else ''}")
-    resume_command = (f"python objfind.py train --resume --out {out} --steps {args.steps} --workers {args.workers}")
+    resume_command = f"python objfind.py train --resume --out {shlex.quote(str(out))} --steps {args.steps} --workers {args.workers}"
     try:
         result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
                        ppo_settings(dict(args.set or [])), workers=args.workers, seed=args.seed,
-                       resume=args.resume, meta=meta, init=init, fresh_terminate=args.fresh_terminate)
+                       resume=run, meta=meta, init=init, fresh_terminate=args.fresh_terminate)
     except TrainingInterrupted as stop:
         if stop.update == 0:
             sys.stderr.write("objfind: interrupted before the first update finished; nothing was kept\n")

@@ -34,7 +34,7 @@ def looking_down(height_m, xy=(0.0, 0.0)):
     return T
 
 
-K = of.intrinsics(of.TASKS["ap"])
+K = of.wrist_rig(of.TASKS["ap"]).depth.K
 
 
 def plane_view(volume, plane_z, detection=0.0, camera_z=0.3, times=1):
@@ -311,7 +311,7 @@ def test_same_seed_same_scene_and_state_different_seed_different(ap_env):
 
 
 def test_rewards_of_each_termination_kind(ap_env):
-    s = ap_env.s
+    s = ap_env.cfg
     terminate, stay = np.array([0, 0, 0, 0, 0, 1.0]), np.array([0, 0, 0, 0, 0, -1.0])
     seed, *_ = seed_with(ap_env, target_present=True, target_observed=False)
     _, reward, done, truncated, info = ap_env.step(terminate)        # claims too early
@@ -324,12 +324,12 @@ def test_rewards_of_each_termination_kind(ap_env):
     _, reward, done, _, info = ap_env.step(terminate)                 # "there is no target": right
     assert (reward, done, info["success"]) == (-s.time_penalty + s.detection_reward, True, True)
     ap_env.reset(seed=seed)
-    ap_env.s = dataclasses.replace(s, horizon=3)
+    ap_env.cfg = dataclasses.replace(s, horizon=3)
     try:
         rewards = [ap_env.step(stay)[1] for _ in range(2)]
         _, reward, done, truncated, info = ap_env.step(stay)
     finally:
-        ap_env.s = s
+        ap_env.cfg = s
     assert rewards == [-s.time_penalty] * 2                           # no motion, nothing new seen
     assert (reward, done, truncated, info["success"]) == (-1 - 150, True, False, False)
 
@@ -342,7 +342,7 @@ def test_exploration_reward_is_positive_and_never_exceeds_the_time_penalty(ap_en
 
 
 def test_the_gripper_stays_in_the_workspace_and_never_passes_a_wall(ap_env):
-    s = ap_env.s
+    s = ap_env.cfg
     half = s.workspace_m / 2
     ap_env.reset(seed=0)
     ap_env._teleport(np.array([0.2, 0.0, 0.05]), of.gripper_rotation(0.0, 0.0))
@@ -372,7 +372,7 @@ def test_rendered_depth_matches_the_camera_model(ap_env):
     target = ap_env.objects[0]
     pos, _ = ap_env.sim.getBasePositionAndOrientation(target.body)
     T_camera = looking_down(pos[2] + 0.25, pos[:2])
-    rgb, depth = of.render_rgbd(ap_env.sim, T_camera, K, 80, 60, 0.01, 1.2)
+    rgb, depth = of.render_rgbd(ap_env.sim, T_camera, of.Camera(80, 60, K, 0.01, 1.2))
     top = 0.25 - of.Settings.object_size_m / 2
     assert abs(depth[30, 40] - top) < 0.003
     red = of.detect_target(rgb) if ap_env.target_present else None
@@ -388,7 +388,7 @@ def test_target_seen_counts_only_points_that_face_the_camera(ap_env):
     ap_env.target_seen[:] = False
     ap_env._observe()
     top_only = ap_env.target_seen.mean()
-    assert 0.1 < top_only < ap_env.s.seen_threshold       # the top face of a cube is a sixth of it
+    assert 0.1 < top_only < ap_env.cfg.seen_threshold       # the top face of a cube is a sixth of it
     ap_env._teleport(np.array(pos) + [0.12, 0.0, 0.15], of.gripper_rotation(0.0, 0.0))
     ap_env._observe()                                      # off to the side: a second face appears
     assert ap_env.target_seen.mean() > top_only + 0.03
@@ -445,13 +445,13 @@ def test_every_scene_kind_builds_and_only_the_target_is_red(scene):
 def test_object_counts_and_pile_free_share_follow_table_one():
     env = of.ObjectFindingEnv("ip", "cubes")
     rng = np.random.default_rng(0)
-    draws = [of.object_count(env.s, "cubes", rng) for _ in range(2000)]
+    draws = [of.object_count(env.cfg, "cubes", rng) for _ in range(2000)]
     env.close()
     counts, piles = np.array([d[0] for d in draws]), np.array([d[1] for d in draws])
     assert counts.min() == 15 and counts.max() == 75
     assert abs((~piles).mean() - 0.25) < 0.03                       # exploration ratio
     dense = of.ObjectFindingEnv("ip", "fixed-primitives")
-    counts = [of.object_count(dense.s, "fixed-primitives", rng) for _ in range(500)]
+    counts = [of.object_count(dense.cfg, "fixed-primitives", rng) for _ in range(500)]
     dense.close()
     assert min(n for n, heaped in counts if heaped) >= 45            # 15-30 per pile, 3 piles
 
@@ -497,7 +497,7 @@ def test_a_push_through_a_hand_built_pile_reveals_the_buried_target():
     env = of.ObjectFindingEnv("ip", "cubes")
     try:
         seed_with(env, target_present=True)
-        sim, a = env.sim, env.s.object_size_m
+        sim, a = env.sim, env.cfg.object_size_m
         for o in env.objects[9:]:
             sim.removeBody(o.body)
         env.objects = env.objects[:9]
@@ -507,8 +507,8 @@ def test_a_push_through_a_hand_built_pile_reveals_the_buried_target():
         for o, (x, y, layer) in zip(env.objects, spots):
             sim.resetBasePositionAndOrientation(o.body, [1.02 * a * x, 1.02 * a * y, a / 2 + 0.001 + layer * (a + 0.002)],
                                                 [0, 0, 0, 1])
-        assert of.settle(sim, env.objects, env.s, env.s.settle_pile_substeps)
-        env.volume.reset()
+        assert of.settle(sim, env.objects, env.cfg, env.cfg.settle_pile_substeps)
+        env.searcher.volume.reset()
         env.target_seen[:] = False
 
         def look() -> float:     # the same two views before and after the push
@@ -519,14 +519,14 @@ def test_a_push_through_a_hand_built_pile_reveals_the_buried_target():
 
         before = np.array([sim.getBasePositionAndOrientation(o.body)[0] for o in env.objects])
         seen_before = look()
-        assert seen_before < env.s.seen_threshold                    # buried: not observed from above
+        assert seen_before < env.cfg.seen_threshold                    # buried: not observed from above
         env._teleport([-0.2, 0.0, 0.012], of.gripper_rotation(0.0, 0.0))
         for _ in range(7):                                           # through the pile's centre along +x
             env.step(np.array([1.0, 0, 0, 0, 0, -1]))
         after = np.array([sim.getBasePositionAndOrientation(o.body)[0] for o in env.objects])
         assert np.count_nonzero(np.linalg.norm(after - before, axis=1) > 0.02) >= 4   # the pile came apart
         seen_after = look()
-        assert seen_after > seen_before + 0.1 and seen_after >= env.s.seen_threshold
+        assert seen_after > seen_before + 0.1 and seen_after >= env.cfg.seen_threshold
     finally:
         env.close()
 
@@ -577,14 +577,14 @@ def test_demo_writes_a_contact_sheet_and_a_video(tmp_path):
 
 
 def test_scripted_agent_finds_a_visible_target(ap_env):
-    agent = of.ScriptedAgent()
+    agent = of.ScriptedAgent(ap_env.cfg)
     successes = 0
     for seed in range(5):
         obs, info = ap_env.reset(seed=seed)
-        agent.reset(ap_env.agent_view())
+        agent.reset(ap_env.searcher, ap_env.gripper_pose())
         done = False
         while not done:
-            obs, reward, done, _, info = ap_env.step(agent.act(obs, ap_env.agent_view()))
+            obs, reward, done, _, info = ap_env.step(agent.act(ap_env.searcher, ap_env.gripper_pose()))
         successes += info["success"]
     assert successes >= 3
 
@@ -593,7 +593,7 @@ def test_large_workspace_and_rgb_render():
     env = of.ObjectFindingEnv("ap-large", "cubes", seed=1, render_mode="rgb_array")
     try:
         obs, info = env.reset()
-        assert env.volume.shape == (100, 100, 50) and abs(env.volume.voxel_m - 0.012) < 1e-9
+        assert env.searcher.volume.shape == (100, 100, 50) and abs(env.searcher.volume.voxel_m - 0.012) < 1e-9
         assert 10 <= len(env.objects) <= 40
         frame = env.render()
         assert frame.shape == (240, 320, 3) and frame.dtype == np.uint8
@@ -647,19 +647,19 @@ def test_two_opt_on_a_grid_is_within_five_percent_of_optimal(seed):
 
 def test_gnbv_prefers_a_view_of_unobserved_space(ap_env):
     ap_env.reset(seed=3)
-    volume = ap_env.volume
+    volume = ap_env.searcher.volume
     volume.reset()
     volume.weight[:50] = 1.0                             # the -x half of the workspace is known
     volume.tsdf[:50] = 1.0
-    gnbv = of.GreedyNextBestView()
-    gnbv.reset(ap_env.agent_view())
+    gnbv = of.GreedyNextBestView(ap_env.cfg)
+    gnbv.reset(ap_env.searcher, ap_env.gripper_pose())
     T = np.eye(4)
     T[:3, :3] = of.gripper_rotation(0.0, 0.0)
     toward_known, toward_unknown = T.copy(), T.copy()
     toward_known[:3, 3] = [-0.15, 0.0, 0.3]
     toward_unknown[:3, 3] = [0.15, 0.0, 0.3]
-    cameras = np.stack([of.camera_pose(P, ap_env.s) for P in (toward_known, toward_unknown)])
-    counts = gnbv.newly_observed(volume, cameras, np.zeros(3), ap_env.s)
+    cameras = np.stack([ap_env.searcher.camera_pose(P) for P in (toward_known, toward_unknown)])
+    counts = gnbv.newly_observed(ap_env.searcher, cameras, np.zeros(3))
     assert counts[1] > 10 * max(counts[0], 1)
 
 
@@ -667,9 +667,9 @@ def test_ges_grid_spacing_is_one_step_and_covers_the_workspace():
     env = of.ObjectFindingEnv("ip", "cubes")
     try:
         env.reset(seed=0)
-        ges = of.GridExhaustiveSearch()
-        ges.reset(env.agent_view())
-        s = env.s
+        ges = of.GridExhaustiveSearch(env.cfg)
+        ges.reset(env.searcher, env.gripper_pose())
+        s = env.cfg
         xs = np.unique(ges.nodes[:, 0])
         assert np.allclose(np.diff(xs), s.max_step_m)
         assert xs.min() - s.max_step_m / 2 == pytest.approx(-s.workspace_m / 2)
@@ -761,9 +761,9 @@ def test_urdf_visual_origin_rotation_is_applied():
 
 def test_perceived_share_grows_with_the_faces_seen_and_tracks_the_truth(ap_env):
     seed, *_ = seed_with(ap_env, target_present=True)
-    s = ap_env.s
+    s = ap_env.cfg
     pos = np.array(ap_env.sim.getBasePositionAndOrientation(ap_env.objects[0].body)[0])
-    ap_env.volume.reset()
+    ap_env.searcher.volume.reset()
     ap_env.target_seen[:] = False
     shares = []
     for dist, yaw, roll in [(0.25, 0, 0), (0.2, 0, 0.6), (0.2, np.pi, 0.6), (0.2, np.pi / 2, 0.6)]:
@@ -771,7 +771,7 @@ def test_perceived_share_grows_with_the_faces_seen_and_tracks_the_truth(ap_env):
         axis = R[:, 2]
         ap_env._teleport(pos - axis * dist + s.camera_offset_m * axis, R)   # camera looking at the target
         ap_env._observe()
-        shares.append((ap_env.agent_view().perceived_target_share(), ap_env.target_seen.mean()))
+        shares.append((ap_env.searcher.perceived_target_share(), ap_env.target_seen.mean()))
     (top, top_truth), (last, last_truth) = shares[0], shares[-1]
     assert last > top + 0.1 and last_truth > top_truth + 0.1          # more faces, more seen, in both
     assert all(0.6 * t < p < t + 0.03 for p, t in shares), shares     # in step, on the safe side
@@ -784,11 +784,11 @@ def test_a_view_from_straight_above_perceives_one_face_of_six(ap_env, height_m, 
     # stopped the searchers early.
     seed_with(ap_env, target_present=True)
     pos = np.array(ap_env.sim.getBasePositionAndOrientation(ap_env.objects[0].body)[0])
-    ap_env.volume.reset()
-    camera_z = pos[2] + ap_env.s.object_size_m / 2 + height_m
-    ap_env._teleport(np.r_[pos[:2], camera_z - ap_env.s.camera_offset_m], of.gripper_rotation(0.0, 0.0))
+    ap_env.searcher.volume.reset()
+    camera_z = pos[2] + ap_env.cfg.object_size_m / 2 + height_m
+    ap_env._teleport(np.r_[pos[:2], camera_z - ap_env.cfg.camera_offset_m], of.gripper_rotation(0.0, 0.0))
     ap_env._observe()
-    assert low < ap_env.agent_view().perceived_target_share() <= 1 / 6 + 0.005
+    assert low < ap_env.searcher.perceived_target_share() <= 1 / 6 + 0.005
 
 
 def test_perceived_share_is_conservative_over_random_views(ap_env):
@@ -797,11 +797,11 @@ def test_perceived_share_is_conservative_over_random_views(ap_env):
     for seed in range(60):
         _, info = ap_env.reset(seed=seed)
         for _ in range(4):
-            ap_env.volume.reset()
+            ap_env.searcher.volume.reset()
             ap_env.target_seen[:] = False
             ap_env._observe()
             if info["target_present"] and ap_env.target_seen.mean() > 0.05:
-                perceived.append(ap_env.agent_view().perceived_target_share())
+                perceived.append(ap_env.searcher.perceived_target_share())
                 truth.append(ap_env.target_seen.mean())
             ap_env.step(np.r_[rng.uniform(-1, 1, 5), -1.0])
     perceived, truth = np.array(perceived), np.array(truth)
@@ -872,7 +872,7 @@ TINY_PPO = of.PPOSettings(hidden=32, batch_steps=256, minibatch=64, epochs=4, le
 
 
 def test_ppo_improves_the_return_of_a_tiny_reach_task(tmp_path):
-    result = of.train(Reach, tmp_path, total_steps=256 * 25, p=TINY_PPO, progress=False)
+    result = of.train(Reach, tmp_path, total_steps=256 * 25, ppo=TINY_PPO, progress=False)
     returns = [float(r["return"]) for r in result["log"]]
     assert np.mean(returns[-5:]) > np.mean(returns[:3]) + 0.5, returns
     assert (tmp_path / "checkpoint.pt").exists() and (tmp_path / "curve.png").exists()
@@ -880,11 +880,11 @@ def test_ppo_improves_the_return_of_a_tiny_reach_task(tmp_path):
 
 
 def test_a_warm_start_begins_from_the_trained_policy(tmp_path):
-    trained = of.train(Reach, tmp_path / "a", total_steps=256 * 20, p=TINY_PPO, progress=False)
+    trained = of.train(Reach, tmp_path / "a", total_steps=256 * 20, ppo=TINY_PPO, progress=False)
     init = of.read_checkpoint(tmp_path / "a" / "checkpoint.pt")
-    warm = of.train(Reach, tmp_path / "b", total_steps=256, p=TINY_PPO, progress=False, seed=1, init=init,
+    warm = of.train(Reach, tmp_path / "b", total_steps=256, ppo=TINY_PPO, progress=False, seed=1, init=init,
                     meta=dict(init="reach"))
-    fresh = of.train(Reach, tmp_path / "c", total_steps=256, p=TINY_PPO, progress=False, seed=1)
+    fresh = of.train(Reach, tmp_path / "c", total_steps=256, ppo=TINY_PPO, progress=False, seed=1)
     first = lambda result: float(result["log"][0]["return"])
     assert first(warm) > first(fresh) + 0.5, (first(warm), first(fresh), trained["log"][-1])
     checkpoint = of.read_checkpoint(tmp_path / "b" / "checkpoint.pt")
@@ -908,10 +908,11 @@ def test_a_fresh_terminate_keeps_the_moves_and_forgets_when_to_stop():
 
 
 def test_a_resumed_run_repeats_the_next_update_exactly(tmp_path):
-    straight = of.train(Reach, tmp_path / "a", total_steps=256 * 3, p=TINY_PPO, progress=False)
-    of.train(Reach, tmp_path / "b", total_steps=256 * 2, p=TINY_PPO, progress=False)
+    straight = of.train(Reach, tmp_path / "a", total_steps=256 * 3, ppo=TINY_PPO, progress=False)
+    of.train(Reach, tmp_path / "b", total_steps=256 * 2, ppo=TINY_PPO, progress=False)
     # a resumed run takes its settings from its checkpoint, whatever it is given
-    resumed = of.train(Reach, tmp_path / "b", total_steps=256 * 3, p=of.PPOSettings(), progress=False, resume=True)
+    resumed = of.train(Reach, tmp_path / "b", total_steps=256 * 3, ppo=of.PPOSettings(), progress=False,
+                       resume=of.read_checkpoint(tmp_path / "b" / "checkpoint.pt", run=True))
     for (name, a), b in zip(straight["model"].state_dict().items(), resumed["model"].state_dict().values()):
         assert torch.equal(a, b), name
     same = lambda row: {k: v for k, v in row.items() if k != "wall_s"}
@@ -936,7 +937,7 @@ def test_the_learning_curve_has_labelled_ticks_on_both_axes(tmp_path):
 
 
 def test_a_killed_checkpoint_write_leaves_the_last_checkpoint_readable(tmp_path):
-    of.train(Reach, tmp_path, total_steps=256, p=TINY_PPO, progress=False)
+    of.train(Reach, tmp_path, total_steps=256, ppo=TINY_PPO, progress=False)
     (tmp_path / "checkpoint.tmp.pt").write_bytes(b"half a file")       # a write that was killed
     assert of.read_checkpoint(tmp_path / "checkpoint.pt")["update"] == 1
     truncated = tmp_path / "truncated.pt"
@@ -959,7 +960,7 @@ def test_the_observation_normaliser_matches_the_statistics_of_all_batches_seen()
 def test_the_policy_maps_a_state_to_a_valid_action():
     model = of.ActorCritic(71, of.PPOSettings())
     agent = of.PPOAgent(dict(obs_dim=71, settings=vars(of.PPOSettings()), model=model.state_dict()))
-    action = agent.act(np.random.default_rng(0).normal(size=71).astype(np.float32), None)
+    action = agent.decide(np.random.default_rng(0).normal(size=71).astype(np.float32))
     assert action.shape == (6,) and np.all(np.abs(action) <= 1) and action[5] == -1.0   # rarely terminates
 
 
@@ -989,10 +990,10 @@ def test_the_shipped_weights_load_and_act(agent, task, name):
     assert path == Path(of.__file__).resolve().parent / "weights" / name
     checkpoint = of.read_checkpoint(path)
     assert checkpoint["obs_dim"] == 71 and checkpoint["env_steps"] > 0 and checkpoint["task"] == task
-    policy = of.load_agent(path)
+    policy = of.PPOAgent(of.learned_policy(agent, task))
     env = of.ObjectFindingEnv(task, "cubes", seed=3)
-    obs, _ = env.reset()
-    action = policy.act(obs, env.agent_view())
+    env.reset()
+    action = policy.act(env.searcher, env.gripper_pose())
     assert action.shape == (6,) and np.all(np.abs(action) <= 1) and abs(action[5]) == 1.0
     assert checkpoint["model"]["obs_count"].item() > 0          # trained: the normaliser has seen batches
     env.close()
@@ -1023,14 +1024,14 @@ I3DE_EMPTY_SEED = 0      # a pile scene without a target
 def shipped_i3de_episode(seed: int) -> tuple[list, dict]:
     """The shipped I3DE's greedy episode on ip/cubes scene `seed`: per step, the target's seen share
     before the step and whether the step moved an object; and the last info."""
-    agent = of.load_agent(of.default_weights("i3de", "ip"))
+    agent = of.PPOAgent(of.learned_policy("i3de", "ip"))
     env = of.ObjectFindingEnv("ip", "cubes")
     obs, info = env.reset(seed=seed)
     positions = lambda: np.array([env.sim.getBasePositionAndOrientation(o.body)[0] for o in env.objects])
     trace, done, before = [], False, positions()
     while not done:
         seen = info["target_seen_fraction"]
-        obs, _, done, _, info = env.step(agent.act(obs, env.agent_view()))
+        obs, _, done, _, info = env.step(agent.act(env.searcher, env.gripper_pose()))
         after = positions()
         trace.append((seen, np.linalg.norm(after - before, axis=1).max() > PUSH_MOVE_M))
         before = after
@@ -1058,7 +1059,8 @@ def test_a_policy_checkpoint_runs_as_an_eval_agent(tmp_path):
     path = tmp_path / "a3de.pt"
     of.save_checkpoint(path, dict(format="objfind-ppo", model=model.state_dict(), obs_dim=71,
                                   settings=vars(of.PPOSettings()), task="ap", scene="cubes"))
-    rows = of.evaluate("a3de", "ap", "cubes", episodes=2, workers=1, progress=False, weights=path)
+    rows = of.evaluate("a3de", "ap", "cubes", episodes=2, workers=1, progress=False,
+                       policy=of.learned_policy("a3de", "ap", path))
     assert len(rows) == 2 and all(1 <= r["steps"] <= 130 for r in rows)
 
 
@@ -1211,7 +1213,7 @@ def test_a_checkpoint_of_the_wrong_shape_or_with_nan_weights_is_one_line_everywh
 
 
 def test_resume_keeps_the_runs_task_and_scene(tmp_path, capsys, monkeypatch):
-    of.train(Reach, tmp_path / "run", total_steps=256, p=TINY_PPO, progress=False, meta=dict(task="ip", scene="cubes"))
+    of.train(Reach, tmp_path / "run", total_steps=256, ppo=TINY_PPO, progress=False, meta=dict(task="ip", scene="cubes"))
     run = str(tmp_path / "run")
     assert "trains on task ip" in one_line_exit_two(capsys, ["train", "--resume", "--task", "ap", "--out", run])
     assert "scene cubes" in one_line_exit_two(capsys, ["train", "--resume", "--scene", "random-shapes", "--out", run])
@@ -1224,16 +1226,17 @@ def test_resume_keeps_the_runs_task_and_scene(tmp_path, capsys, monkeypatch):
 def test_a_resumed_run_repeats_exactly_with_another_worker_count(tmp_path):
     env = functools.partial(of.ObjectFindingEnv, "ap", "cubes")
     p = of.PPOSettings(hidden=16, batch_steps=64, minibatch=32, epochs=2, checkpoint_every=1)
-    straight = of.train(env, tmp_path / "a", total_steps=128, p=p, workers=2, progress=False)
-    of.train(env, tmp_path / "b", total_steps=64, p=p, workers=2, progress=False)
-    resumed = of.train(env, tmp_path / "b", total_steps=128, p=p, workers=1, progress=False, resume=True)
+    straight = of.train(env, tmp_path / "a", total_steps=128, ppo=p, workers=2, progress=False)
+    of.train(env, tmp_path / "b", total_steps=64, ppo=p, workers=2, progress=False)
+    resumed = of.train(env, tmp_path / "b", total_steps=128, ppo=p, workers=1, progress=False,
+                       resume=of.read_checkpoint(tmp_path / "b" / "checkpoint.pt", run=True))
     for (name, a), b in zip(straight["model"].state_dict().items(), resumed["model"].state_dict().values()):
         assert torch.equal(a, b), name
 
 
 def test_training_keeps_its_last_update_and_an_interrupted_one(tmp_path, monkeypatch, capsys):
     p = dataclasses.replace(TINY_PPO, checkpoint_every=5)
-    of.train(Reach, tmp_path / "short", total_steps=256 * 2, p=p, progress=False)
+    of.train(Reach, tmp_path / "short", total_steps=256 * 2, ppo=p, progress=False)
     assert of.read_checkpoint(tmp_path / "short" / "checkpoint.pt")["update"] == 2   # the last update
     real_update, calls = of.ppo_update, []
 
@@ -1244,11 +1247,12 @@ def test_training_keeps_its_last_update_and_an_interrupted_one(tmp_path, monkeyp
         return real_update(*args, **kwargs)
     monkeypatch.setattr(of, "ppo_update", interrupted_third_update)
     with pytest.raises(of.TrainingInterrupted) as stop:
-        of.train(Reach, tmp_path / "cut", total_steps=256 * 10, p=p, progress=False)
+        of.train(Reach, tmp_path / "cut", total_steps=256 * 10, ppo=p, progress=False)
     assert stop.value.update == 2 and of.read_checkpoint(tmp_path / "cut" / "checkpoint.pt")["update"] == 2
     assert len(of.read_train_log(tmp_path / "cut" / "log.csv")) == 2
     monkeypatch.setattr(of, "ppo_update", real_update)
-    resumed = of.train(Reach, tmp_path / "cut", total_steps=256 * 3, p=p, progress=False, resume=True)
+    resumed = of.train(Reach, tmp_path / "cut", total_steps=256 * 3, ppo=p, progress=False,
+                       resume=of.read_checkpoint(tmp_path / "cut" / "checkpoint.pt", run=True))
     assert resumed["update"] == 3
     # on the command line: one line saying what was kept and how to resume
     monkeypatch.setattr(of, "train", lambda *a, **k: (_ for _ in ()).throw(
@@ -1284,14 +1288,13 @@ def detection_sum_seen_the_same_way(side_m: float, target_size_known: bool) -> f
     env.reset(seed=1)
     for o in env.objects:
         env.sim.removeBody(o.body)
-    s = dataclasses.replace(env.s, object_size_m=side_m)
+    s = dataclasses.replace(env.cfg, object_size_m=side_m)
     target = of.make_object(env.sim, "cubes", s, np.random.default_rng(0), of.TARGET_RGBA)
     env.sim.resetBasePositionAndOrientation(target.body, [0, 0, side_m / 2], [0, 0, 0, 1])
     env.objects, env.target_present = [target], True
     env.target_area_m2 = of.mesh_area(target.vertices, target.faces)
-    # what _build_scene tells the searcher under each rule
-    env.told_target_area_m2 = env.target_area_m2 if target_size_known else env.s.nominal_target_area_m2
-    env.volume.reset()
+    # what reset tells the searcher under each rule
+    env.searcher.reset(env.target_area_m2 if target_size_known else env.cfg.nominal_target_area_m2)
     env.np_random = np.random.default_rng(0)                  # the same detector noise for every size
     for offset in ([0, 0, 4], [3, 0, 3], [0, 3, 3]):
         direction = -np.array(offset, float) / np.linalg.norm(offset)
@@ -1299,7 +1302,7 @@ def detection_sum_seen_the_same_way(side_m: float, target_size_known: bool) -> f
         yaw = np.arctan2(direction[1], direction[0]) if offset[:2] != [0, 0] else 0.0
         env._teleport(np.array(offset, float) * side_m + [0, 0, side_m], of.gripper_rotation(yaw, roll))
         env._observe()
-    value = float(env._state()[of.STATE_DETECTION_SUM])
+    value = float(env.searcher.state(env.gripper_pose())[of.STATE_DETECTION_SUM])
     env.close()
     return value
 
@@ -1311,35 +1314,150 @@ def test_the_detection_sum_is_a_share_of_the_told_target_size():
     assert cube_b == pytest.approx(cube) and twice_b / cube_b > 2.5   # no size told: 4x the surface, 4x the sum
 
 
-def test_every_agent_runs_on_the_view_alone_and_the_view_grants_only_the_rule():
-    granted = {"s", "volume", "K", "T_world_tool", "target_area_m2"}
-    assert {f.name for f in dataclasses.fields(of.AgentView)} == granted
+def test_every_agent_runs_on_the_searcher_alone_and_the_searcher_is_told_only_the_rule():
     for known in (True, False):
         env = of.ObjectFindingEnv("ip", "variable-primitives", target_size_known=known)
         for name in list(of.BASELINES) + list(of.LEARNED):
-            obs, _ = env.reset(seed=5)
-            view = env.agent_view()
-            assert not any(isinstance(v, (of.ObjectFindingEnv, of.PhysicsClient)) for v in vars(view).values())
-            assert view.target_area_m2 == (env.target_area_m2 if known else env.s.nominal_target_area_m2)
-            agent = of.make_agent(name, 5, task="ip")
-            agent.reset(view)
-            for _ in range(8):                               # each agent acts on the view alone
-                obs, _, done, _, _ = env.step(agent.act(obs, env.agent_view()))
+            env.reset(seed=5)
+            searcher = env.searcher
+            assert not any(isinstance(v, (of.ObjectFindingEnv, of.PhysicsClient, of.Settings))
+                           for v in vars(searcher).values())
+            assert searcher.target_area_m2 == (env.target_area_m2 if known else env.cfg.nominal_target_area_m2)
+            policy = of.learned_policy(name, "ip") if name in of.LEARNED else None
+            agent = of.make_agent(name, env.cfg, 5, policy)
+            agent.reset(searcher, env.gripper_pose())
+            assert not any(isinstance(v, (of.ObjectFindingEnv, of.PhysicsClient, of.Settings))
+                           for v in vars(agent).values())
+            for _ in range(8):                               # each agent acts on the searcher alone
+                _, _, done, _, _ = env.step(agent.act(searcher, env.gripper_pose()))
                 if done:
                     break
-        assert env.target_present and abs(env.target_area_m2 / env.s.nominal_target_area_m2 - 1) > 0.05
+        assert env.target_present and abs(env.target_area_m2 / env.cfg.nominal_target_area_m2 - 1) > 0.05
         env.close()
 
 
 def test_gnbv_ends_a_scene_without_target_by_the_explored_criterion():
     env = of.ObjectFindingEnv("ap", "cubes")
-    agent = of.make_agent("gnbv", 25)
+    agent = of.make_agent("gnbv", env.cfg, 25)
     obs, info = env.reset(seed=25)
-    agent.reset(env.agent_view())
+    agent.reset(env.searcher, env.gripper_pose())
     done = False
     while not done:
-        obs, _, done, _, info = env.step(agent.act(obs, env.agent_view()))
+        obs, _, done, _, info = env.step(agent.act(env.searcher, env.gripper_pose()))
     env.close()
     assert not info["target_present"] and info["terminated_by_agent"] and info["success"]
-    assert info["steps"] < env.s.horizon and info["explored_fraction"] > env.s.gnbv_explored_to_stop
-    assert agent.stalled < env.s.gnbv_stall_steps         # ended by 97 % explored, not by the stall rule
+    assert info["steps"] < env.cfg.horizon and info["explored_fraction"] > env.cfg.gnbv_explored_to_stop
+    assert agent.stalled < env.cfg.gnbv_stall_steps         # ended by 97 % explored, not by the stall rule
+
+
+# ------------------------------------------------------------------------------------------------
+# the robot's side: a Searcher needs no simulator
+# ------------------------------------------------------------------------------------------------
+
+def recorded_episode(agent_name: str, task: str, seed: int) -> tuple:
+    """An env episode as a robot would log it: per view the depth, the detections, the camera's and
+    the gripper's poses; per step the state and the action. The env is closed before returning."""
+    env = of.ObjectFindingEnv(task, "cubes")
+    policy = of.learned_policy(agent_name, task) if agent_name in of.LEARNED else None
+    agent = of.make_agent(agent_name, env.cfg, seed, policy)
+    obs, _ = env.reset(seed=seed)
+    told = env.searcher.target_area_m2
+    agent.reset(env.searcher, env.gripper_pose())
+    views, states, actions, done = [], [obs], [], False
+    while not done:
+        views.append((env.view.depth_m, env.view.detections, env.view.T_world_camera, env.gripper_pose()))
+        actions.append(agent.act(env.searcher, env.gripper_pose()))
+        obs, _, done, _, _ = env.step(actions[-1])
+        states.append(obs)
+    client = env.sim._client
+    env.close()
+    assert not of.pb.isConnected(physicsClientId=client)
+    return env.cfg, told, views, states, actions
+
+
+@pytest.fixture
+def no_physics(monkeypatch):
+    """Any attempt to open a physics client fails the test."""
+    def refuse(*args, **kwargs):
+        raise AssertionError("a physics client was opened")
+    monkeypatch.setattr(of.pb, "connect", refuse)
+    monkeypatch.setattr(of, "PhysicsClient", refuse)
+
+
+@pytest.mark.parametrize("agent_name, task, seed", [("gnbv", "ap", 7), ("a3de", "ap", 7002), ("ges", "ip", 2)])
+def test_a_searcher_fed_a_recorded_episode_gives_its_states_and_its_agent_acts_the_same(agent_name, task, seed,
+                                                                                       request):
+    cfg, told, views, states, actions = recorded_episode(agent_name, task, seed)
+    request.getfixturevalue("no_physics")
+    searcher = of.Searcher(cfg)
+    searcher.reset(told)
+    policy = of.learned_policy(agent_name, task) if agent_name in of.LEARNED else None
+    agent = of.make_agent(agent_name, cfg, seed, policy)
+    for i, (depth_m, detections, T_world_camera, T_world_tool) in enumerate(views):
+        searcher.observe(depth_m, T_world_camera, detections=detections)
+        if i == 0:
+            agent.reset(searcher, T_world_tool)
+        assert np.array_equal(searcher.state(T_world_tool), states[i]), i      # bit for bit
+        assert np.array_equal(agent.act(searcher, T_world_tool), actions[i]), i
+    assert len(actions) >= 2
+
+
+def test_detections_of_an_offset_rgb_camera_land_where_its_pixels_see_in_the_depth_image():
+    depth_camera = of.wrist_rig(of.TASKS["ap"]).depth
+    K_rgb = np.array([[100.0, 0, 64], [0, 100.0, 48], [0, 0, 1]])
+    rgb_camera = of.Camera(128, 96, K_rgb)
+    T_depth_rgb = np.eye(4)
+    T_depth_rgb[0, 3] = 0.05                          # the RGB camera 5 cm to the depth camera's right
+    rig = of.Rig(depth_camera, rgb_camera, np.eye(4), T_depth_rgb)
+    depth_m = np.full((depth_camera.height, depth_camera.width), 0.5, np.float32)   # a wall 0.5 m ahead
+    depth_m[:, :5] = 0.0                                                             # no return there
+    detections = np.zeros((96, 128), np.float32)
+    detections[40:56, 70:90] = 1.0                    # a red patch in the RGB image
+    mapped = rig.detections_in_depth_image(detections, depth_m)
+    K = depth_camera.K
+    rows, cols = np.mgrid[0:depth_camera.height, 0:depth_camera.width] + 0.5
+    x, y = (cols - K[0, 2]) / K[0, 0] * 0.5, (rows - K[1, 2]) / K[1, 1] * 0.5
+    u = np.floor(K_rgb[0, 0] * (x - 0.05) / 0.5 + K_rgb[0, 2])   # where each depth pixel lands in the RGB image
+    v = np.floor(K_rgb[1, 1] * y / 0.5 + K_rgb[1, 2])
+    expected = (u >= 70) & (u < 90) & (v >= 40) & (v < 56) & (depth_m > 0)
+    assert expected.sum() > 10 and np.array_equal(mapped > 0, expected)
+    same = of.wrist_rig(of.TASKS["ap"])               # one RGB-D camera: the scores pass unchanged
+    assert same.detections_in_depth_image(depth_m, depth_m) is depth_m
+
+
+def test_a_new_ppo_setting_is_one_field_and_round_trips_through_a_checkpoint_and_set(tmp_path, monkeypatch, capsys):
+    extended = dataclasses.make_dataclass("PPOSettings", [("momentum", float, 0.5)], bases=(of.PPOSettings,),
+                                          frozen=True)
+    monkeypatch.setattr(of, "PPOSettings", extended)
+    run = tmp_path / "run"
+    small = ["--set", "batch_steps=32", "--set", "hidden=8", "--set", "minibatch=16", "--set", "epochs=1"]
+    assert of.main(["train", "--task", "ap", "--out", str(run), "--steps", "32", "--workers", "1",
+                    "--set", "momentum=0.7", *small]) == 0
+    assert of.read_checkpoint(run / "checkpoint.pt")["settings"]["momentum"] == 0.7
+    assert of.main(["train", "--resume", "--out", str(run), "--steps", "64", "--workers", "1"]) == 0
+    checkpoint = of.read_checkpoint(run / "checkpoint.pt", run=True)
+    assert checkpoint["update"] == 2 and of.ppo_settings(checkpoint["settings"]).momentum == 0.7
+    assert of.main(["eval", "--agent", "a3de", "--weights", str(run / "checkpoint.pt"), "--episodes", "1",
+                    "--workers", "1"]) == 0
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        of.main(["train", "--out", str(tmp_path / "bad"), "--set", "momentum=nan"])
+    assert "momentum" in capsys.readouterr().err
+
+
+def test_train_runs_in_a_fresh_clone(tmp_path):
+    listed = subprocess.run(["git", "ls-files"], cwd=HERE, capture_output=True, text=True)
+    if listed.returncode != 0:
+        pytest.skip("not a git checkout")
+    clone = tmp_path / "clone"
+    for name in listed.stdout.splitlines():
+        assert not name.startswith("runs/"), name          # no old runs to trip over
+        source = HERE / name
+        if source.is_file():
+            (clone / name).parent.mkdir(parents=True, exist_ok=True)
+            (clone / name).write_bytes(source.read_bytes())
+    done = subprocess.run([sys.executable, "objfind.py", "train", "--task", "ip", "--steps", "24", "--workers", "1",
+                           "--set", "batch_steps=24", "--set", "minibatch=12"], cwd=clone, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert of.read_checkpoint(clone / "runs" / "ip-cubes" / "checkpoint.pt", run=True)["update"] == 1
