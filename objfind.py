@@ -34,12 +34,16 @@ import argparse
 import copy
 import csv
 import functools
+import gc
+import importlib
+import multiprocessing
 import os
 import re
 import shlex
 import signal
 import sys
 import tempfile
+import threading
 import time
 import dataclasses
 from dataclasses import dataclass
@@ -61,7 +65,6 @@ from tqdm import tqdm
 
 def _import_quietly(name: str):
     """Import a module with file descriptor 2 silenced: pybullet prints its build date on import."""
-    import importlib
     sys.stderr.flush()
     saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, 2)
@@ -74,23 +77,6 @@ def _import_quietly(name: str):
 
 pb = _import_quietly("pybullet")
 from pybullet_utils.bullet_client import BulletClient   # noqa: E402
-
-
-class PhysicsClient(BulletClient):
-    """One headless pybullet world: pybullet's BulletClient, which passes its client id to every call
-    (`sim.stepSimulation()`) and disconnects when garbage collected. Connected without an options
-    string, since with one, even empty, pybullet prints "argv[0]=" on every connect."""
-
-    def __init__(self):
-        self._shapes, self._pid = {}, os.getpid()
-        self._client = pb.connect(pb.DIRECT)
-
-    def __getattr__(self, name):
-        """BulletClient's bound call, kept: later calls (thousands per step in physics) skip the lookup."""
-        bound = super().__getattr__(name)
-        if name != "disconnect":   # BulletClient marks the client closed when disconnect is looked up
-            setattr(self, name, bound)
-        return bound
 
 
 class UsageError(Exception):
@@ -313,11 +299,8 @@ RED_HUE_DEG = (-10.0, 50.0)      # CIELAB hue atan2(b*, a*): red, not orange, pi
 
 
 def detect_target(rgb: np.ndarray) -> np.ndarray:
-    """CIELAB red detector: (H, W, 3) uint8 RGB -> (H, W) float32, 1 on the target, 0 elsewhere.
-
-    Hue and chroma in CIELAB barely change with shading, so lit and shadowed faces of the red target
-    pass while blues, purples, yellows and greys do not, however bright or dark.
-    """
+    """CIELAB red detector: (H, W, 3) uint8 RGB -> (H, W) float32, 1 on the target, 0 elsewhere. Hue and
+    chroma barely change with shading: lit and shadowed red faces pass, no blue, purple, yellow or grey does."""
     lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB).astype(np.float32)
     a, b = lab[..., 1] - 128, lab[..., 2] - 128   # OpenCV stores a*, b* offset by 128
     hue = np.degrees(np.arctan2(b, a))
@@ -346,11 +329,8 @@ def surface_derivative(points: np.ndarray, axis: int) -> np.ndarray:
 
 class TSDFVolume:
     """A TSDF over the workspace plus a detection channel (a truncated *unsigned* distance of detections).
-
-    Voxel (i, j, k) has its centre at origin + (i + 0.5, j + 0.5, k + 0.5) * voxel_m, the origin at
-    (-size/2, -size/2, 0), as in Open3D's uniform volume. Arrays are indexed [x, y, z]. Unobserved voxels
-    hold tsdf 0 and weight 0 (Open3D's convention), so sums over the volume say how much was observed.
-    """
+    Voxel (i, j, k) is centred at origin + (i + 0.5, j + 0.5, k + 0.5) voxel_m, the origin at (-size/2, -size/2, 0),
+    as in Open3D; arrays are [x, y, z]. Unobserved voxels hold 0, so sums say how much was observed."""
 
     def __init__(self, cfg: Settings):
         self.voxel_m = cfg.voxel_m
@@ -386,14 +366,9 @@ class TSDFVolume:
         return self.observed_count / self.weight.size
 
     def frustum_boxes(self, depth_m, K, T_world_camera, slabs: int = 3) -> list:
-        """Index boxes, one per slab of z-layers, that bound the camera frustum up to the farthest depth.
-
-        The frustum is a pyramid (apex at the camera, base at the farthest depth); cut into horizontal
-        slabs, each slab's part has its own, smaller xy extent, so far fewer voxels are projected than
-        with one box around the whole pyramid. A slab's part has as corners the pyramid's corners
-        inside the slab and the points where the pyramid's 8 edges cross the slab's two planes. Three
-        slabs measured fastest here: fewer project more voxels, more cost more numpy calls.
-        """
+        """Index boxes bounding the camera's frustum up to the farthest depth, one per slab of z-layers: a slab's
+        part of the pyramid (its corners in the slab, its 8 edges cut at the slab's planes) is narrower than the
+        whole, so far fewer voxels are projected. Three slabs measured fastest: more cost more numpy calls."""
         H, W = depth_m.shape
         far = float(depth_m.max()) + self.trunc_m
         u = np.array([0, W, W, 0], np.float64)
@@ -427,14 +402,9 @@ class TSDFVolume:
 
     def integrate(self, depth_m: np.ndarray, detections: np.ndarray, K: np.ndarray,
                   T_world_camera: np.ndarray) -> int:
-        """Fuse one view: (H, W) depth in metres along z (0 = no return), (H, W) detection scores in [0, 1].
-
-        The weighted running average of Curless & Levoy (1996): every voxel in front of or up to
-        trunc_m behind the surface its pixel sees takes d = min(1, (depth - z) / trunc_m), then
-        tsdf <- (w tsdf + d) / (w + 1) and w <- min(w + 1, max_weight). Capping the weight at 2
-        (the paper) lets two new views overwrite what a push moved. The detection channel is averaged
-        with the same weights. Returns the number of voxels observed for the first time.
-        """
+        """Fuse one view, (H, W) depth in metres along z (0: no return) and (H, W) detection scores in [0, 1], by
+        the weighted running average of Curless & Levoy (1996), weights capped at max_weight (2: two new views
+        overwrite what a push moved). Returns the number of voxels observed for the first time."""
         # 1. the voxels the view sees: flat indices, their signed distance to their pixel's surface, the pixel
         seen = self._voxels_in_view(depth_m, K, T_world_camera) if np.any(depth_m > 0) else None
         if seen is None:
@@ -465,13 +435,10 @@ class TSDFVolume:
         return newly
 
     def _voxels_in_view(self, depth_m, K, T_world_camera):
-        """(flat index, signed distance, pixel) of each voxel in the frustum that projects onto a depth
-        return and lies in front of it or up to trunc_m behind; None when the frustum misses the volume.
-
-        Pixel coordinates are (fx x + cx z) / z and (fy y + cy z) / z, and x, y, z are linear in the
-        voxel centre, so each numerator is a sum of three 1-D terms broadcast over a box of voxels: one
-        full-size add per quantity instead of a 3 x 3 product per voxel. Everything stays float32.
-        """
+        """(flat index, signed distance, pixel) of each voxel that projects onto a depth return and lies in
+        front of it or up to trunc_m behind; None when the frustum misses the volume. Pixel coordinates are
+        (fx x + cx z) / z and (fy y + cy z) / z, and x, y, z are linear in the voxel centre: each numerator is
+        a sum of three 1-D terms broadcast over a box, not a 3 x 3 product per voxel."""
         H, W = depth_m.shape
         world_to_pixel = (K @ T_world_camera[:3, :3].T).astype(np.float32)   # (3, 3) rows give u z, v z, z
         t = T_world_camera[:3, 3].astype(np.float32)
@@ -499,15 +466,10 @@ class TSDFVolume:
         return np.concatenate(flats), np.concatenate(sdfs), np.concatenate(pixels)
 
     def _mark_target_surface(self, depth_m, detections, K, T_world_camera, flat, det_new) -> None:
-        """Keep `target_area`: per voxel, the target surface area (m^2) seen in it by one view.
-
-        The detection channel itself cannot say how much of a small target was seen: its band is as
-        thick as a cube, and the half of it in free space is carved by the next view from another
-        side. Back-projecting the detected pixels with the surface area each covers measures it
-        instead. A voxel keeps the most area any single view saw in it, so seeing a face twice does
-        not count it twice; it is cleared once the channel there falls to the threshold (carved, or
-        forgotten after two views of something else, as when the target was pushed away).
-        """
+        """Keep `target_area`: per voxel, the most target surface (m^2) one view saw in it, from the detected
+        pixels back-projected with the area each covers. The detection band itself cannot say how much of a small
+        target was seen (it is as thick as a cube, half of it carved by the next view). A voxel's area is
+        cleared when its detection falls to the threshold (carved, or forgotten after the target was pushed)."""
         area_seen = self.target_area.reshape(-1)
         if area_seen.any():   # area lives only while the channel still holds a confident detection
             area_seen[flat] *= det_new > self.detection_threshold
@@ -579,13 +541,9 @@ def column_bins(u: np.ndarray, v: np.ndarray, crop_m: float) -> np.ndarray:
 
 def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, finger_z: float,
                  crop_m: float, detection_scale: float) -> np.ndarray:
-    """The state of Fig. 2: 4 maps x 17 bins, the TSDF and detection sums, and the roll. (71,) float32.
-
-    The maps are TSDF above / below the fingertips, then detections above / below, each summed along z
-    and pooled into the 17 bins around the end-effector. The TSDF pair is normalised by its joint sum,
-    the detection pair by its own; the sums follow, scaled by the volume's voxel count and by
-    `detection_scale` (a fully seen target's detection sum), then the roll.
-    """
+    """Fig. 2's state, (71,) float32: TSDF above / below the fingertips, then detections above / below, summed
+    along z and pooled into 17 bins around the gripper, each pair normalised by its own sum; then the TSDF sum
+    per voxel, the detection sum in units of `detection_scale` (a whole target's), and the roll."""
     nx, ny, nz = volume.shape
     k = int(np.clip(round(finger_z / volume.voxel_m), 0, nz))
     # Summing each column above and below the fingertips is one matrix product with a (nz, 2) mask.
@@ -611,19 +569,13 @@ def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, fing
 # Frames (Sec. III-B.2): the gripper's pose and the cameras on its wrist.
 # ================================================================================================
 
-def rotation_z(angle: float) -> np.ndarray:
-    cos_a, sin_a = np.cos(angle), np.sin(angle)
-    return np.array([[cos_a, -sin_a, 0], [sin_a, cos_a, 0], [0, 0, 1.0]])
-
-
-def rotation_y(angle: float) -> np.ndarray:
-    cos_a, sin_a = np.cos(angle), np.sin(angle)
-    return np.array([[cos_a, 0, sin_a], [0, 1.0, 0], [-sin_a, 0, cos_a]])
-
-
-def rotation_x(angle: float) -> np.ndarray:
-    cos_a, sin_a = np.cos(angle), np.sin(angle)
-    return np.array([[1.0, 0, 0], [0, cos_a, -sin_a], [0, sin_a, cos_a]])
+def rotation(angle: float, axis: str) -> np.ndarray:
+    """The 3 x 3 rotation by `angle` (radians) about the coordinate axis "x", "y" or "z"."""
+    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
+    R = np.eye(3)
+    R[i, i] = R[j, j] = np.cos(angle)
+    R[i, j], R[j, i] = -np.sin(angle), np.sin(angle)
+    return R
 
 
 # The gripper in the tool frame (origin between the fingertips, z along the approach axis): a palm
@@ -640,7 +592,7 @@ R_YAW_TOOL = np.array([[0, -1, 0], [-1, 0, 0], [0, 0, -1.0]])
 
 def gripper_rotation(yaw: float, roll: float) -> np.ndarray:
     """R_world_tool: yaw about world z, then roll about the yaw frame's forward axis."""
-    return rotation_z(yaw) @ rotation_x(roll) @ R_YAW_TOOL
+    return rotation(yaw, "z") @ rotation(roll, "x") @ R_YAW_TOOL
 
 
 def yaw_roll_of(R_world_tool: np.ndarray) -> tuple[float, float]:
@@ -769,8 +721,8 @@ class Searcher:
         floor_z = self.fingertip_clearance_m + FINGER_REACH_M * abs(np.sin(roll))
         goal = np.eye(4)
         goal[:3, :3] = gripper_rotation(yaw, roll)
-        goal[:3, 3] = np.clip(T_world_tool[:3, 3] + rotation_z(yaw) @ (np.asarray(action[:3]) * self.max_step_m),
-                              [-half, -half, floor_z], [half, half, self.ceiling_m])
+        step = rotation(yaw, "z") @ (np.asarray(action[:3]) * self.max_step_m)
+        goal[:3, 3] = np.clip(T_world_tool[:3, 3] + step, [-half, -half, floor_z], [half, half, self.ceiling_m])
         return goal
 
 
@@ -829,7 +781,7 @@ class ScriptedAgent:
             return stop_action()
         action = np.zeros(ACTION_SIZE, np.float32)
         action[ACTION_MOVES] = -1.0
-        to_centre = rotation_z(yaw).T @ np.r_[-T[0, 3], -T[1, 3], searcher.ceiling_m - T[2, 3]]
+        to_centre = rotation(yaw, "z").T @ np.r_[-T[0, 3], -T[1, 3], searcher.ceiling_m - T[2, 3]]
         action[:3] = np.clip(to_centre / searcher.max_step_m, -1, 1)
         action[3] = np.clip((self.tilt_rad - roll) / searcher.max_turn_rad, -1, 1)
         if T[2, 3] > searcher.ceiling_m - searcher.max_step_m:      # high enough: start turning
@@ -839,13 +791,9 @@ class ScriptedAgent:
 
 
 class GreedyNextBestView:
-    """GNBV, the active baseline (Sec. IV-B.1): one-step greedy next-best-view.
-
-    Samples n poses reachable in one action and moves to the one that would newly observe the most
-    voxels, found by casting rays through the local volume with unobserved space assumed empty. Once
-    the target is detected it instead moves to the pose that brings the target closest to the image
-    centre. Terminates above 97 % explored or 20 % of the target perceived.
-    """
+    """GNBV, the active baseline (Sec. IV-B.1): of n poses one action away, go to the one whose rays would
+    newly observe the most voxels (unobserved space taken as empty) or, once the target is detected, the one
+    that centres it. Stops above 97 % explored or 20 % of the target perceived."""
 
     def __init__(self, cfg: Settings, seed: int | None = None):
         self.rng = np.random.default_rng(seed)
@@ -882,13 +830,9 @@ class GreedyNextBestView:
         return volume.origin + (hits.mean(axis=0) + 0.5) * volume.voxel_m
 
     def newly_observed(self, searcher: Searcher, T_cameras: np.ndarray, ee_xyz) -> np.ndarray:
-        """For each (4, 4) camera pose, the unobserved voxels its rays would reach, counted once each.
-
-        A ray stops at the first observed voxel behind a surface (TSDF below 0), the floor or a wall;
-        unobserved voxels are taken as empty, and voxels outside the crop around the gripper are
-        not known to the agent, so they neither count nor block. A ray that hits nothing (over a
-        wall, past the floor) brings no depth, and the camera learns nothing along it: it counts 0.
-        """
+        """For each (4, 4) camera pose, the unobserved voxels in the gripper's crop its rays would reach, counted
+        once. A ray stops at an observed voxel behind a surface, the floor or a wall; one that hits nothing
+        (over a wall) brings no depth and counts 0."""
         volume = searcher.volume
         observed = volume.weight.reshape(-1) > 0
         occupied = observed & (volume.tsdf.reshape(-1) < 0)
@@ -943,12 +887,9 @@ def tour_length(points: np.ndarray, tour: np.ndarray, closed: bool = True) -> fl
 
 
 def two_opt(points: np.ndarray, tour: np.ndarray, closed: bool = True) -> np.ndarray:
-    """Improve a tour by 2-opt moves (Croes 1958) until none shortens it; returns a new permutation.
-
-    A move reverses tour[i:j + 1], replacing edges (a, b) and (c, d) by (a, c) and (b, d). The gain
-    of every (i, j) pair is computed at once as an (n, n) array, and the best move is applied. With
-    closed=False the tour is a path whose first point stays first (the start of a search route).
-    """
+    """Improve a tour by 2-opt moves (Croes 1958) until none shortens it; returns a new permutation. The
+    gain of every move (reversing tour[i:j + 1]) comes at once as an (n, n) array; with closed=False the
+    tour is a path whose first point stays first."""
     tour = np.array(tour)
     n = len(tour)
     while True:
@@ -970,13 +911,9 @@ def two_opt(points: np.ndarray, tour: np.ndarray, closed: bool = True) -> np.nda
 
 
 class GridExhaustiveSearch:
-    """GES, the interactive baseline (Sec. IV-B.2): sweep a grid at a fixed low height, pushing.
-
-    Nodes one max translation apart cover the workspace just above the lowest layer of objects, so
-    the fingers push whatever lies on top of another object. The route from the start is nearest
-    neighbour improved by 2-opt. Stops above 20 % of the target perceived, or at the end of the
-    grid, where it claims there is no target.
-    """
+    """GES, the interactive baseline (Sec. IV-B.2): sweep a grid of nodes one step apart just above the
+    lowest layer of objects, pushing what lies on top, along a nearest-neighbour route improved by 2-opt.
+    Stops above 20 % of the target perceived, or at the grid's end claiming there is no target."""
 
     node_tol_m = 0.01   # a node counts as reached within this distance
 
@@ -1015,7 +952,7 @@ class GridExhaustiveSearch:
         if searcher.perceived_target_share() > searcher.seen_threshold or self.next >= len(self.route):
             return stop_action()
         self.tries += abs(offset[2]) < self.node_tol_m           # only count tries at the sweep height
-        step = rotation_z(yaw).T @ offset / searcher.max_step_m
+        step = rotation(yaw, "z").T @ offset / searcher.max_step_m
         action = np.zeros(ACTION_SIZE, np.float32)
         action[:3] = np.clip(step, -1, 1)
         action[3] = np.clip(-roll / searcher.max_turn_rad, -1, 1)
@@ -1028,12 +965,9 @@ class GridExhaustiveSearch:
 # ================================================================================================
 
 class ActorCritic(nn.Module):
-    """Actor and critic MLPs (2 x 200, tanh). The actor gives the means of a Gaussian over the five
-    displacements (state-independent std) and the logit of a Bernoulli "terminate".
-
-    Both see the observation standardised by a running mean and variance kept in buffers, so they are
-    saved with the weights: the 71 values span scales from 1e-3 (a far bin) to 1 (the roll).
-    """
+    """Actor and critic MLPs (2 x 200, tanh): the means of a Gaussian over the five displacements (state-
+    independent std) and the logit of a Bernoulli "terminate". Inputs are standardised by a running mean
+    and variance kept in buffers: the 71 values span 1e-3 (a far bin) to 1 (the roll)."""
 
     moves = ACTION_MOVES
 
@@ -1121,9 +1055,26 @@ class PPOAgent:
 
 
 # ================================================================================================
-# The world I (Sec. III-B.2, III-C): what the simulator adds to the robot's side. The wrist view
-# rendered by TinyRenderer, the detector's noise, and the gripper painted into an outside view.
+# The world I (Sec. III-B.2, III-C): what the simulator adds to the robot's side. A pybullet world, the
+# wrist view rendered by TinyRenderer, the detector's noise, and the gripper painted into an outside view.
 # ================================================================================================
+
+class PhysicsClient(BulletClient):
+    """One headless pybullet world: pybullet's BulletClient, which passes its client id to every call
+    (`sim.stepSimulation()`) and disconnects when garbage collected. Connected without an options
+    string, since with one, even empty, pybullet prints "argv[0]=" on every connect."""
+
+    def __init__(self):
+        self._shapes, self._pid = {}, os.getpid()
+        self._client = pb.connect(pb.DIRECT)
+
+    def __getattr__(self, name):
+        """BulletClient's bound call, kept: later calls (thousands per step in physics) skip the lookup."""
+        bound = super().__getattr__(name)
+        if name != "disconnect":   # BulletClient marks the client closed when disconnect is looked up
+            setattr(self, name, bound)
+        return bound
+
 
 def quat_of(R: np.ndarray) -> list:
     """pybullet quaternion (x, y, z, w) of a rotation matrix."""
@@ -1246,11 +1197,8 @@ def mesh_area(vertices: np.ndarray, faces: np.ndarray) -> float:
 
 
 def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator):
-    """(n, 3) points uniformly on a triangle mesh's surface and their (n, 3) outward unit normals.
-
-    Triangles are drawn by area, points by uniform barycentrics. Normals are turned to point away from
-    the mesh's centroid, since OBJ files do not all wind their faces the same way.
-    """
+    """(n, 3) points uniformly on a triangle mesh (triangles drawn by area) and their (n, 3) unit normals,
+    turned away from the centroid since OBJ files do not all wind their faces the same way."""
     a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
     cross = np.cross(b - a, c - a)
     area = np.linalg.norm(cross, axis=1)
@@ -1273,7 +1221,7 @@ def urdf_mesh(urdf_path: str) -> tuple[np.ndarray, np.ndarray]:
     scale = np.array([float(x) for x in mesh.group(2).split()]) if mesh.group(2) else np.ones(3)
     offset = np.array([float(x) for x in xyz.group(1).split()]) if xyz else np.zeros(3)
     roll, pitch, yaw = (float(x) for x in rpy.group(1).split()) if rpy else (0.0, 0.0, 0.0)
-    R = rotation_z(yaw) @ rotation_y(pitch) @ rotation_x(roll)       # URDF: fixed-axis roll, pitch, yaw
+    R = rotation(yaw, "z") @ rotation(pitch, "y") @ rotation(roll, "x")       # URDF: fixed-axis roll, pitch, yaw
     vertices, faces = [], []
     for line in (Path(urdf_path).parent / mesh.group(1)).read_text().splitlines():
         if line.startswith("v "):
@@ -1300,56 +1248,45 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.stack([np.sqrt(1 - z ** 2) * np.cos(a), np.sqrt(1 - z ** 2) * np.sin(a), z], 1)
 
 
-EXTERIOR_CACHE: dict = {}
-
-
+@functools.lru_cache(maxsize=None)
 def exterior_surface(urdf_path: str, scale: float, min_cos: float, candidates: int = 8000, views: int = 40,
                      pixels: int = 128):
-    """Points on the part of a mesh model's surface that can be seen from outside, their normals
-    (turned towards a camera that sees them), and that part's area. Cached per model.
-
-    Household meshes can be unions of overlapping convex pieces (the teddy): ground truth sampled on
-    all faces counts surface buried inside, which nobody can see. A hollow shape's inside (the mug's)
-    is real surface, but its normal, turned away from the centroid, would face away from any camera.
-    The model alone is rendered from `views` directions around it; a candidate point is kept when
-    some view sees it unoccluded and seen less obliquely than min_cos (the ground truth's own limit).
-    """
-    key = (urdf_path, scale, min_cos, candidates)
-    if key not in EXTERIOR_CACHE:
-        sim = PhysicsClient()
-        try:
-            body = sim.loadURDF(urdf_path, globalScaling=scale)
-            sim.resetBasePositionAndOrientation(body, [0, 0, 0], [0, 0, 0, 1])   # world = base frame
-            vertices, faces = body_frame_mesh(sim, body, urdf_path, scale)
-            points, normals = sample_surface(vertices, faces, candidates, np.random.default_rng(0))
-            radius = float(np.linalg.norm(vertices, axis=1).max())
-            distance = 4 * radius
-            K = np.array([[pixels * distance / (2.4 * radius), 0, pixels / 2],
-                          [0, pixels * distance / (2.4 * radius), pixels / 2], [0, 0, 1]])
-            footprint = 2.4 * radius / pixels
-            seen_from = np.zeros(len(points))             # signed: which side of the face was seen
-            for d in fibonacci_sphere(views):
-                z_axis = -d
-                x_axis = np.cross(z_axis, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
-                x_axis /= np.linalg.norm(x_axis)
-                T = np.eye(4)
-                T[:3, :3] = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], 1)
-                T[:3, 3] = d * distance
-                _, depth = render_rgbd(sim, T, Camera(pixels, pixels, K, distance - 2 * radius, distance + 2 * radius))
-                cam = (points - T[:3, 3]) @ T[:3, :3]
-                u = np.clip((K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2]).astype(int), 0, pixels - 1)
-                v = np.clip((K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]).astype(int), 0, pixels - 1)
-                cos = normals @ d                           # d points from the model to the camera
-                slack = footprint / np.maximum(np.abs(cos), min_cos) + 0.01 * radius
-                visible = (np.abs(depth[v, u] - cam[:, 2]) < slack) & (np.abs(cos) > min_cos)
-                first = visible & (seen_from == 0)
-                seen_from[first] = np.sign(cos[first])
-        finally:
-            sim.disconnect()
-        keep = seen_from != 0
-        EXTERIOR_CACHE[key] = (points[keep], normals[keep] * seen_from[keep, None],
-                               mesh_area(vertices, faces) * keep.mean())
-    return EXTERIOR_CACHE[key]
+    """Points on the surface of a mesh model that can be seen from outside, their normals (turned towards a
+    camera that sees them), and that part's area; cached. Buried faces of overlapping convex pieces (the
+    teddy) are dropped, a hollow inside (the mug's) kept: a point stays if one of `views` renders of the
+    model alone sees it unoccluded and less obliquely than min_cos, the ground truth's own limit."""
+    sim = PhysicsClient()
+    try:
+        body = sim.loadURDF(urdf_path, globalScaling=scale)
+        sim.resetBasePositionAndOrientation(body, [0, 0, 0], [0, 0, 0, 1])   # world = base frame
+        vertices, faces = body_frame_mesh(sim, body, urdf_path, scale)
+        points, normals = sample_surface(vertices, faces, candidates, np.random.default_rng(0))
+        radius = float(np.linalg.norm(vertices, axis=1).max())
+        distance = 4 * radius
+        K = np.array([[pixels * distance / (2.4 * radius), 0, pixels / 2],
+                      [0, pixels * distance / (2.4 * radius), pixels / 2], [0, 0, 1]])
+        footprint = 2.4 * radius / pixels
+        seen_from = np.zeros(len(points))             # signed: which side of the face was seen
+        for d in fibonacci_sphere(views):
+            z_axis = -d
+            x_axis = np.cross(z_axis, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
+            x_axis /= np.linalg.norm(x_axis)
+            T = np.eye(4)
+            T[:3, :3] = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], 1)
+            T[:3, 3] = d * distance
+            _, depth = render_rgbd(sim, T, Camera(pixels, pixels, K, distance - 2 * radius, distance + 2 * radius))
+            cam = (points - T[:3, 3]) @ T[:3, :3]
+            u = np.clip((K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2]).astype(int), 0, pixels - 1)
+            v = np.clip((K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]).astype(int), 0, pixels - 1)
+            cos = normals @ d                           # d points from the model to the camera
+            slack = footprint / np.maximum(np.abs(cos), min_cos) + 0.01 * radius
+            visible = (np.abs(depth[v, u] - cam[:, 2]) < slack) & (np.abs(cos) > min_cos)
+            first = visible & (seen_from == 0)
+            seen_from[first] = np.sign(cos[first])
+    finally:
+        sim.disconnect()
+    keep = seen_from != 0
+    return points[keep], normals[keep] * seen_from[keep, None], mesh_area(vertices, faces) * keep.mean()
 
 
 # pybullet_data's household-like meshes with the global scaling that brings each near 5-8 cm
@@ -1418,14 +1355,10 @@ def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) 
 
 
 def build_workspace(sim, cfg: Settings) -> tuple[int, int, int]:
-    """Floor, four walls and the gripper on its constraint; returns (gripper, ghost, constraint) ids.
-
-    The wrist camera must not see the gripper: TinyRenderer draws a body without a visual shape from
-    its collision shapes, so the gripper's only visual is a transparent speck behind the camera, and
-    the outside view paints the gripper in (`paint_gripper`). The ghost is a body without collision
-    shapes parked under the floor and never moved: removing it would renumber the bodies after it and
-    reshape Bullet's broadphase, so every stored episode would change.
-    """
+    """Floor, four walls and the gripper on its constraint; returns (gripper, ghost, constraint) ids. The
+    gripper's only visual is a transparent speck (TinyRenderer would draw its collision shapes into the
+    wrist view); the outside view paints it in. The ghost, parked under the floor, keeps the stored
+    episodes' body numbering, on which Bullet's broadphase order depends."""
     half, thick = cfg.workspace_m / 2, cfg.wall_thickness_m
 
     def static_box(half_extents, pos, rgba):
@@ -1482,17 +1415,15 @@ def scatter_positions(objects: list, cfg: Settings, rng: np.random.Generator) ->
 
 
 def pile_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> list:
-    """(xyz, yaw) drop poses on square pyramids of spots over num_piles random centres.
-
-    Spots are filled in order of ring (distance from the pile's axis) plus pile_layer_cost per layer,
-    so a pile grows from its bottom centre outward and upward. The first object (the target, when
-    there is one) takes the bottom centre of the first pile, and the rest falls around and onto it.
-    """
+    """(xyz, yaw) drop poses on square pyramids of spots over num_piles random centres, filled in order of
+    ring plus pile_layer_cost per layer, so piles grow up and out from the bottom centre; the first object
+    (the target, when there is one) takes the bottom centre of the first pile."""
     half = cfg.workspace_m / 2
     centres = []
     while len(centres) < cfg.num_piles:
         c = rng.uniform(-half + cfg.pile_margin_m, half - cfg.pile_margin_m, 2)
-        if all(np.linalg.norm(c - q) > cfg.pile_min_apart_m for q in centres) or rng.random() < cfg.pile_overlap_chance:
+        apart = all(np.linalg.norm(c - q) > cfg.pile_min_apart_m for q in centres)
+        if apart or rng.random() < cfg.pile_overlap_chance:
             centres.append(c)
     share = np.array_split(np.arange(len(objects)), cfg.num_piles)
     poses = [None] * len(objects)
@@ -1515,25 +1446,18 @@ def pile_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> li
 SETTLE_CHECK_EVERY = 8   # physics steps between checks that everything is at rest (a check costs a few)
 
 
-def objects_at_rest(sim, objects: list, cfg: Settings) -> bool:
-    if not objects:
-        return True
-    velocity = np.array([sim.getBaseVelocity(o.body)[0] for o in objects])
-    return float(np.max(np.sum(velocity ** 2, axis=1))) < cfg.settle_speed ** 2
-
-
 def settle(sim, objects: list, cfg: Settings, max_steps: int) -> bool:
-    """Step physics until every object is at rest, then put them all to sleep; False if still moving.
-
-    pybullet only lets bodies sleep after 2 s at rest; sending them to sleep at once keeps later
-    physics steps cheap (a resting pile then costs nothing until something touches it).
-    """
+    """Step physics until every object is slower than settle_speed, then put them all to sleep; False if
+    still moving. pybullet only lets bodies sleep after 2 s at rest; sending them to sleep at once keeps
+    later physics steps cheap (a resting pile then costs nothing until something touches it)."""
     for step in range(max_steps):
         sim.stepSimulation()
-        if step % SETTLE_CHECK_EVERY == SETTLE_CHECK_EVERY - 1 and objects_at_rest(sim, objects, cfg):
-            for o in objects:
-                sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
-            return True
+        if step % SETTLE_CHECK_EVERY == SETTLE_CHECK_EVERY - 1:
+            speeds = [sum(c * c for c in sim.getBaseVelocity(o.body)[0]) for o in objects]
+            if max(speeds, default=0.0) < cfg.settle_speed ** 2:
+                for o in objects:
+                    sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
+                return True
     return False
 
 
@@ -1601,13 +1525,9 @@ class WristView:
 
 
 class ObjectFindingEnv(gym.Env):
-    """The object finding task as a Gymnasium environment (Sec. III-B, III-C).
-
-    Action: Box(-1, 1, (6,)): dx, dy, dz (times max_step_m) in the end-effector's yaw frame, roll and yaw
-    (times max_turn_rad), and terminate when the sixth value is above 0. Observation: the 71 values of
-    `encode_state`. `info` holds target_present, target_seen_fraction, target_observed,
-    explored_fraction, and success on the last step.
-    """
+    """The object finding task as a Gymnasium environment (Sec. III-B, III-C): the world, and the robot's
+    Searcher it feeds. Actions and states are the Searcher's (`goal_pose`, `state`); `info` holds
+    target_present, target_seen_fraction, target_observed, explored_fraction, and success at the end."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
@@ -1785,13 +1705,9 @@ class ObjectFindingEnv(gym.Env):
         self.sim.changeConstraint(self.constraint, xyz, q, maxForce=self.cfg.gripper_force_n)
 
     def _drive_gripper(self, T_world_tool: np.ndarray, T_goal: np.ndarray) -> None:
-        """Drive the gripper to a goal pose: teleport through free space, simulate contact.
-
-        Speed trick: when the box swept by the gripper touches no other body's bounding box and nothing
-        is still moving, the force-bounded constraint would reach the goal unhindered, so the gripper is
-        placed there and no physics step is spent. Otherwise the constraint pulls it there with bounded
-        force while physics runs, until the pose is reached or the gripper stalls, then objects settle.
-        """
+        """Drive the gripper to a goal pose. When the box it sweeps touches no other body and nothing still
+        moves, the bounded constraint would get there unhindered: the gripper is placed there, no physics step
+        spent. Otherwise the constraint pulls it with bounded force until it arrives or stalls, then objects settle."""
         cfg, sim = self.cfg, self.sim
         goal, R_goal = T_goal[:3, 3], T_goal[:3, :3]
         lo, hi = sim.getAABB(self.gripper)
@@ -1821,9 +1737,7 @@ class ObjectFindingEnv(gym.Env):
     # --- pictures ---------------------------------------------------------------------------------
 
     def render(self):
-        if self.render_mode == "rgb_array":
-            return self.outside_view()
-        return None
+        return self.outside_view() if self.render_mode == "rgb_array" else None
 
     def outside_view(self, width: int = OUTSIDE_VIEW[0], height: int = OUTSIDE_VIEW[1]) -> np.ndarray:
         """The scene from a fixed oblique camera with the gripper painted in, (H, W, 3) uint8. Painted,
@@ -1859,12 +1773,9 @@ for _id, _task in GYM_IDS.items():
 # ================================================================================================
 
 def gae(rewards, values, dones, last_value, gamma: float, lam: float):
-    """Generalised advantage estimation (Schulman et al. 2016, "High-Dimensional Continuous Control Using
-    Generalized Advantage Estimation", eq. 16) over (T, W) arrays; dones[t] ends the episode at t.
-
-    A_t = sum_l (gamma lam)^l delta_{t+l}, with delta_t = r_t + gamma V(s_{t+1}) - V(s_t), computed
-    backwards as A_t = delta_t + gamma lam A_{t+1}; the critic's targets are A_t + V(s_t).
-    """
+    """Generalised advantage estimation (Schulman et al. 2016, eq. 16) over (T, W) arrays, dones[t] ending
+    the episode at t: A_t = delta_t + gamma lam A_{t+1}, delta_t = r_t + gamma V(s_{t+1}) - V(s_t), computed
+    backwards; the critic's targets are A_t + V(s_t)."""
     T = len(rewards)
     advantages = np.zeros_like(rewards)
     running = np.zeros_like(last_value)
@@ -1878,11 +1789,8 @@ def gae(rewards, values, dones, last_value, gamma: float, lam: float):
 
 
 def ppo_update(model: ActorCritic, optimizer, batch: dict, ppo: PPOSettings, generator) -> dict:
-    """One PPO update (Schulman et al. 2017, "Proximal Policy Optimization Algorithms", eq. 7 and 9):
-    epochs over shuffled minibatches of the clipped surrogate, a value loss and an entropy bonus.
-
-    Advantages are standardised per batch. Returns the mean losses and statistics for the log.
-    """
+    """One PPO update (Schulman et al. 2017, eq. 7 and 9): epochs over shuffled minibatches of the clipped
+    surrogate, a value loss and an entropy bonus, advantages standardised per batch; the log's statistics."""
     n = len(batch["obs"])
     adv = batch["advantages"]
     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
@@ -1914,12 +1822,8 @@ def ppo_update(model: ActorCritic, optimizer, batch: dict, ppo: PPOSettings, gen
 
 
 def collect_rollout(env, model: ActorCritic, steps: int, env_seed: int, sample_seed: int) -> dict:
-    """`steps` steps of one env from a reset with `env_seed`, actions sampled with `sample_seed`.
-
-    Starting every update from a seeded reset makes an update a function of the weights, the
-    optimizer and the update's index alone, so a resumed run repeats it exactly. Returns (T,) arrays
-    and the episodes that finished.
-    """
+    """`steps` steps of one env from a reset seeded by `env_seed`, actions sampled with `sample_seed`, so
+    an update depends on the weights, the optimizer and its index alone: (T,) arrays and the episodes."""
     generator = torch.Generator().manual_seed(sample_seed)
     obs, _ = env.reset(seed=env_seed)
     out = {k: [] for k in ("obs", "raw", "logp", "values", "rewards", "dones")}
@@ -1953,12 +1857,8 @@ def derived_seed(*key: int) -> int:
 
 
 def ppo_iteration(model: ActorCritic, optimizer, ppo: PPOSettings, collect, seed: int, update: int) -> tuple:
-    """One PPO iteration, as CleanRL lays it out: collect a batch, advantages, update, statistics.
-
-    `collect(weights, update)` returns one rollout per stream (`collect_rollout`), each from a reset
-    and sampling seeded by (seed, update, stream), so an update depends on the weights, the optimizer
-    and its index alone. Returns the log's row and the finished episodes.
-    """
+    """One PPO iteration, as CleanRL lays it out: collect, advantages, update, statistics. `collect(weights,
+    update)` gives one `collect_rollout` per stream; returns the log's row and the finished episodes."""
     # 1. collect with the current weights, time-major: (T, streams, ...)
     parts = collect(model.state_dict(), update)
     episodes = [e for part in parts for e in part["episodes"]]
@@ -2012,7 +1912,8 @@ def read_checkpoint(path: Path, run: bool = False, state_size: int | None = None
     if missing:
         raise UsageError(f"{str(path)!r} is an objfind checkpoint without {', '.join(missing)}")
     try:
-        ActorCritic(int(checkpoint["obs_dim"]), ppo_settings(checkpoint["settings"])).load_state_dict(checkpoint["model"])
+        network = ActorCritic(int(checkpoint["obs_dim"]), ppo_settings(checkpoint["settings"]))
+        network.load_state_dict(checkpoint["model"])
     except (UsageError, TypeError, ValueError, RuntimeError) as error:
         reason = str(error).strip().splitlines()[0]
         raise UsageError(f"{str(path)!r} does not hold this network ({reason[:200]})") from None
@@ -2115,10 +2016,6 @@ def nice_ticks(top: float, count: int = 5) -> np.ndarray:
     return np.arange(np.ceil(top / step - 1e-9) + 1) * step
 
 
-def steps_label(value: float) -> str:
-    return f"{value / 1e6:g}M" if value >= 1e6 else f"{value / 1e3:g}k" if value >= 1e3 else f"{value:g}"
-
-
 def plot_learning_curve(rows: list, path: Path) -> None:
     """Success % and mean episode length of the sampled policy per update against env steps: two panels
     with ticks and labelled axes, drawn with OpenCV (no plotting library)."""
@@ -2152,7 +2049,7 @@ def plot_learning_curve(rows: list, path: Path) -> None:
             px = int(round(to_px(t)))
             cv2.line(image, (px, y0 + panel_h), (px, y0 + panel_h + 4), black, 1)
             if panel == 1:                                     # x tick labels under the lower panel only
-                text = steps_label(t)
+                text = f"{t / 1e6:g}M" if t >= 1e6 else f"{t / 1e3:g}k" if t >= 1e3 else f"{t:g}"
                 (tw, th), _ = cv2.getTextSize(text, font, 0.4, 1)
                 cv2.putText(image, text, (px - tw // 2, y0 + panel_h + 8 + th), font, 0.4, black, 1, cv2.LINE_AA)
         cv2.rectangle(image, (left, y0), (left + plot_w, y0 + panel_h), black, 1)
@@ -2202,13 +2099,17 @@ def rollout_collector(make_env, env, obs_dim: int, ppo: PPOSettings, streams: in
                 for w in range(streams)]
 
     if processes > 1:
-        import multiprocessing
         env.close()
-        pool = multiprocessing.get_context("spawn").Pool(processes, start_rollout_worker, (make_env, obs_dim, ppo, True))
+        pool = multiprocessing.get_context("spawn").Pool(processes, start_rollout_worker,
+                                                         (make_env, obs_dim, ppo, True))
         return (lambda weights, update: pool.starmap(run_rollout_worker, jobs(weights, update))), pool.terminate
     start_rollout_worker(lambda: env, obs_dim, ppo)
     return (lambda weights, update: [run_rollout_worker(*job) for job in jobs(weights, update)],
             lambda: ROLLOUT_WORKER.pop("env").close())
+
+
+def stop_as_ctrl_c(signum, frame):
+    raise KeyboardInterrupt   # SIGTERM (a scheduler's stop) ends training as Ctrl-C does
 
 
 class TrainingInterrupted(Exception):
@@ -2219,21 +2120,13 @@ class TrainingInterrupted(Exception):
         self.update, self.env_steps, self.path = update, env_steps, path
 
 
-def raise_keyboard_interrupt(signum, frame):
-    raise KeyboardInterrupt   # SIGTERM (a scheduler's stop) ends training as Ctrl-C does
-
-
 def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSettings(), workers: int = 1,
           seed: int = 0, resume: dict | None = None, progress: bool = True, meta: dict | None = None,
           init: dict | None = None, fresh_terminate: bool = False) -> dict:
-    """PPO with `workers` processes, each with its own make_env(); writes out_dir/log.csv every update
-    and out_dir/checkpoint.pt (and curve.png) every few updates, at the last one and when interrupted.
-
-    `resume`, the run's checkpoint (`read_checkpoint(..., run=True)`), continues it exactly, with its
-    settings and rollout streams (as many as its first `workers`) and any worker count. `init`, a
-    checkpoint, warm-starts a new run from its policy, critic and observation statistics; with
-    fresh_terminate the terminate head starts afresh (how I3DE starts from A3DE: weights/README.md).
-    """
+    """PPO with `workers` processes, each with its own make_env(): out_dir/log.csv every update, checkpoint.pt
+    and curve.png every few updates, at the last and when interrupted. `resume`, the run's checkpoint,
+    continues it exactly (its settings, streams and seed) with any worker count; `init` warm-starts a new run
+    from a checkpoint's networks, with fresh_terminate the terminate head anew (weights/README.md)."""
     writable_folder(out_dir)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
     streams = workers
@@ -2272,9 +2165,8 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
     latest, saved_update, recent = None, update, []
     bar = tqdm(total=total_steps, initial=min(env_steps, total_steps), unit="step", disable=not progress,
                file=sys.stderr, desc="train")
-    import threading
     handles_sigterm = threading.current_thread() is threading.main_thread()
-    previous_handler = signal.signal(signal.SIGTERM, raise_keyboard_interrupt) if handles_sigterm else None
+    previous_handler = signal.signal(signal.SIGTERM, stop_as_ctrl_c) if handles_sigterm else None
     try:
         while env_steps < total_steps:
             t0 = time.perf_counter()
@@ -2367,6 +2259,22 @@ def run_episode(env: ObjectFindingEnv, agent, seed: int) -> dict:
                 decision_ms=round(1e3 * decide_s / info["steps"], 3))
 
 
+def run_jobs(function, jobs: list, workers: int, done=None) -> list:
+    """function(*job) for every job, in `workers` spawned processes or in this one when workers is 1;
+    the results in job order, each also handed to done() as it arrives (for progress bars)."""
+    results = []
+    if workers <= 1:
+        for job in jobs:
+            results.append(function(*job))
+            done and done(results[-1])
+        return results
+    with multiprocessing.get_context("spawn").Pool(workers, ignore_sigint) as pool:
+        for pending in [pool.apply_async(function, job) for job in jobs]:
+            results.append(pending.get())
+            done and done(results[-1])
+    return results
+
+
 def evaluate_chunk(agent_name: str, task: str, scene: str, seeds: list, policy: dict | None = None,
                    overrides: dict | None = None) -> list:
     """Episodes of one worker process: one env, a fresh baseline per episode (its rng seeded by the
@@ -2389,23 +2297,13 @@ def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 
     if agent_name in LEARNED and policy is None:
         policy = learned_policy(agent_name, task)
     seeds = list(range(seed, seed + episodes))
-    chunks = [seeds[i:i + EVAL_CHUNK] for i in range(0, episodes, EVAL_CHUNK)]
+    jobs = [(agent_name, task, scene, seeds[i:i + EVAL_CHUNK], policy, overrides)
+            for i in range(0, episodes, EVAL_CHUNK)]
     bar = tqdm(total=episodes, desc=f"{agent_name} {task}/{scene}", unit="ep", disable=not progress,
                file=sys.stderr)
-    rows = []
-    if workers <= 1:
-        for chunk in chunks:
-            rows += evaluate_chunk(agent_name, task, scene, chunk, policy, overrides)
-            bar.update(len(chunk))
-    else:
-        import multiprocessing
-        with multiprocessing.get_context("spawn").Pool(workers, ignore_sigint) as pool:
-            jobs = [pool.apply_async(evaluate_chunk, (agent_name, task, scene, c, policy, overrides)) for c in chunks]
-            for job in jobs:
-                rows += job.get()
-                bar.update(len(rows) - bar.n)
+    parts = run_jobs(evaluate_chunk, jobs, workers, lambda part: bar.update(len(part)))
     bar.close()
-    return sorted(rows, key=lambda r: r["seed"])
+    return sorted((row for part in parts for row in part), key=lambda r: r["seed"])
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -2570,27 +2468,19 @@ def bins_panel(state: np.ndarray) -> np.ndarray:
     """The 4 x 17 bins of the state as four maps, the gripper's front up and its left on the left."""
     panel = np.full((PANEL[1], PANEL[0], 3), 255, np.uint8)
     names = ("TSDF above", "TSDF below", "detections above", "detections below")
-    size = 96
+    third, ninth = 32, 10   # pixels of an outer cell and of a cell of the middle one
     for m, name in enumerate(names):
         values = state[BINS * m:BINS * (m + 1)]
         x0, y0 = 12 + (m % 2) * 156, 30 + (m // 2) * 106
         scale = max(float(np.abs(values).max()), 1e-6)
-
-        def cell(x, y, w, value):
-            g = int(255 - 230 * min(1.0, abs(value) / scale))
-            colour = (g, g, 255) if m >= 2 else (g, g, g)
-            cv2.rectangle(panel, (x, y), (x + w, y + w), colour, -1)
-            cv2.rectangle(panel, (x, y), (x + w, y + w), (120, 120, 120), 1)
-
-        third = size // 3
-        for a in range(3):
-            for b in range(3):
-                if (a, b) != (1, 1):
-                    cell(x0 + (2 - b) * third, y0 + (2 - a) * third, third, values[OUTER_BIN[3 * a + b]])
-        for c in range(3):
-            for d in range(3):
-                small = third // 3
-                cell(x0 + third + (2 - d) * small, y0 + third + (2 - c) * small, small, values[8 + 3 * c + d])
+        cells = [(x0 + (2 - b) * third, y0 + (2 - a) * third, third, OUTER_BIN[3 * a + b])   # (x, y, side, bin)
+                 for a in range(3) for b in range(3) if (a, b) != (1, 1)]
+        cells += [(x0 + third + (2 - d) * ninth, y0 + third + (2 - c) * ninth, ninth, 8 + 3 * c + d)
+                  for c in range(3) for d in range(3)]
+        for x, y, side, k in cells:
+            g = int(255 - 230 * min(1.0, abs(values[k]) / scale))
+            cv2.rectangle(panel, (x, y), (x + side, y + side), (g, g, 255) if m >= 2 else (g, g, g), -1)
+            cv2.rectangle(panel, (x, y), (x + side, y + side), (120, 120, 120), 1)
         cv2.putText(panel, name, (x0 + 2, y0 - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
     sums = (f"tsdf sum {state[STATE_TSDF_SUM]:.2f}, det sum {state[STATE_DETECTION_SUM]:.2f}, "
             f"roll {state[STATE_ROLL]:.2f}")
@@ -2716,12 +2606,8 @@ def bench_throughput(task: str, steps: int, seed: int = 0) -> float:
 
 
 def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
-    """The report of `python objfind.py bench` as Markdown: the best of `repeats` runs of each measurement.
-
-    Each run replays the same seeded workload, so runs differ only by what else the machine is doing,
-    which can only add time: the fastest run is the closest to the code's own cost.
-    """
-    import multiprocessing
+    """The report of `python objfind.py bench` as Markdown. Each measurement replays the same seeded work
+    `repeats` times; another load on the machine can only add time, so the fastest run is reported."""
     stages = [stage for stage, _ in BENCH_STAGES] + ["step", "reset"]
     lines = [f"Per-stage milliseconds of one step (mean over {steps} exploring steps, one process, "
              f"best of {repeats} runs):", "", "| task / scene | " + " | ".join(stages) + " |",
@@ -2761,7 +2647,6 @@ def soak_chunk(task: str, scene: str, seeds: list) -> dict:
     """Episodes of random actions, a fresh env each, every other one dropped without close(). Counts
     crashes (any error but a refused non-finite action), non-finite observations or rewards, and
     pybullet connections still open once the envs are gone."""
-    import gc
     counts = dict(SOAK_COUNTS)
     clients = []
     for seed in seeds:
@@ -2798,10 +2683,6 @@ def soak_chunk(task: str, scene: str, seeds: list) -> dict:
     return counts
 
 
-def soak_job(job: tuple) -> dict:
-    return soak_chunk(*job)
-
-
 def run_soak(episodes: int, workers: int, seed: int = 0, progress: bool = True) -> dict:
     """`episodes` soak episodes spread over both tasks and all five scene kinds; the summed counts."""
     kinds = [(task, scene) for task in ("ap", "ip") for scene in SCENES]
@@ -2817,14 +2698,7 @@ def run_soak(episodes: int, workers: int, seed: int = 0, progress: bool = True) 
             total[k] = (total[k] or v) if k == "first_crash" else total[k] + v
         bar.update(part["episodes"] + part["crashes"])
 
-    if workers <= 1:
-        for job in jobs:
-            add(soak_chunk(*job))
-    else:
-        import multiprocessing
-        with multiprocessing.get_context("spawn").Pool(workers, ignore_sigint) as pool:
-            for part in pool.imap_unordered(soak_job, jobs):
-                add(part)
+    run_jobs(soak_chunk, jobs, workers, add)
     bar.close()
     return total
 
@@ -2839,22 +2713,20 @@ class ArgumentParser(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def count_arg(text: str) -> int:
-    """A non-negative integer (seeds, steps)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must not be negative")
-    return value
+def whole_number_arg(minimum: int):
+    """An argparse type: an integer of at least `minimum` (0 for seeds, 1 for counts)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{text!r} must be {'positive' if minimum else 'at least 0'}")
+        return value
+    return parse
 
 
-def positive_arg(text: str) -> int:
-    value = count_arg(text)
-    if value == 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be positive")
-    return value
+count_arg, positive_arg = whole_number_arg(0), whole_number_arg(1)
 
 
 def ppo_setting_arg(text: str) -> tuple[str, float]:
@@ -2913,11 +2785,6 @@ def print_summary(agent: str, task: str, scene: str, summary: dict) -> None:
           f"decision {s['decision_ms']:.2f} ms/step")
 
 
-def table_cells():
-    """The cells of Table II as (agent, task, scene)."""
-    return [(agent, task, scene) for (agent, task), scenes in PAPER_TABLE_II.items() for scene in scenes]
-
-
 def eval_table(args) -> int:
     """Every cell of Table II. A cell whose CSV in --out holds exactly these episodes is read back, so an
     interrupted table loses nothing; a CSV of another experiment (other seeds or episode count) is
@@ -2927,7 +2794,8 @@ def eval_table(args) -> int:
     out = writable_folder(Path(args.out or "results"))
     seeds = list(range(args.seed, args.seed + args.episodes))
     suffix = "-size-unknown" if information_rule(args) else ""   # the ablation's files sit beside
-    stored = {cell: stored_cell(out / f"{'-'.join(cell)}{suffix}.csv", seeds) for cell in table_cells()}
+    cells_of_table = [(agent, task, scene) for (agent, task), scenes in PAPER_TABLE_II.items() for scene in scenes]
+    stored = {cell: stored_cell(out / f"{'-'.join(cell)}{suffix}.csv", seeds) for cell in cells_of_table}
     cells = {}
     for (agent, task, scene), rows in stored.items():
         csv_path = out / f"{agent}-{task}-{scene}{suffix}.csv"
@@ -2974,6 +2842,7 @@ def cmd_eval(args) -> int:
 
 
 def cmd_train(args) -> int:
+    run = None
     if args.resume:
         if args.set or args.init or args.fresh_terminate:
             raise UsageError("--set, --init and --fresh-terminate start a new run; a resumed run keeps its own")
@@ -2981,18 +2850,15 @@ def cmd_train(args) -> int:
         if not (out / "checkpoint.pt").exists():
             raise UsageError(f"--resume: no checkpoint in {str(out)!r}")
         run = read_checkpoint(out / "checkpoint.pt", run=True)
-        for flag in ("task", "scene"):   # a run continues on what it was trained on, or is refused
+        for flag, default in (("task", "ap"), ("scene", "cubes")):   # a run goes on with what it trained on
             given, stored = getattr(args, flag), run.get(flag)
             if given is not None and stored is not None and given != stored:
                 raise UsageError(f"--{flag} {given}: the run in {str(out)!r} trains on {flag} {stored}; "
                                  f"leave --{flag} out to continue it")
-            setattr(args, flag, given or stored or ("ap" if flag == "task" else "cubes"))
+            setattr(args, flag, given or stored or default)
     else:
-        run = None
         args.task, args.scene = args.task or "ap", args.scene or "cubes"
-        if args.out is None:
-            writable_folder(Path("runs"))
-        out = Path(args.out or Path("runs") / f"{args.task}-{args.scene}")
+        out = Path(args.out) if args.out else writable_folder(Path("runs")) / f"{args.task}-{args.scene}"
         if (out / "checkpoint.pt").exists():
             raise UsageError(f"{str(out)!r} already holds a run: add --resume to continue it, or pick another --out")
         if args.fresh_terminate and not args.init:
@@ -3003,16 +2869,15 @@ def cmd_train(args) -> int:
     if init is not None:
         meta["init"] = (f"{Path(args.init).name} ({init.get('task', '?')}/{init.get('scene', '?')}, update "
                         f"{init.get('update', '?')}){', terminate reset' if args.fresh_terminate else ''}")
-    resume_command = f"python objfind.py train --resume --out {shlex.quote(str(out))} --steps {args.steps} --workers {args.workers}"
+    resume = (f"python objfind.py train --resume --out {shlex.quote(str(out))} --steps {args.steps} "
+              f"--workers {args.workers}")
     try:
         result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
                        ppo_settings(dict(args.set or [])), workers=args.workers, seed=args.seed,
                        resume=run, meta=meta, init=init, fresh_terminate=args.fresh_terminate)
     except TrainingInterrupted as stop:
-        if stop.update == 0:
-            sys.stderr.write("objfind: interrupted before the first update finished; nothing was kept\n")
-        else:
-            sys.stderr.write(f"objfind: interrupted; kept {stop} in {stop.path}; resume with: {resume_command}\n")
+        kept = f"kept {stop} in {stop.path}; resume with: {resume}" if stop.update else "nothing was kept"
+        sys.stderr.write(f"objfind: interrupted; {kept}\n")
         return 130
     print(f"trained {result['env_steps']} env steps in {result['update']} updates; "
           f"wrote {out / 'checkpoint.pt'}, {out / 'log.csv'} and {out / 'curve.png'}")
@@ -3035,13 +2900,15 @@ def cmd_soak(args) -> int:
     return 1 if c["crashes"] or c["non_finite"] or c["leaked"] else 0
 
 
-TASK_HELP = "Table I preset: ap (active), ap-large, ip (interactive, piles); default ip for ges and i3de, ap otherwise"
-AGENT_HELP = ("random, scripted, the baselines gnbv and ges, or the learned a3de and i3de (shipped weights)")
-SCENE_HELP = "scene kind (default cubes)"
-
-TARGET_SIZE_HELP = ("the information rule: every agent is told its target's size (known, Table II), or no "
-                    "agent is (unknown: the ablation; use another --out for its table)")
-WEIGHTS_HELP = "a learned agent's checkpoint (default: weights/AGENT.pt, AGENT-large.pt on ap-large)"
+def add_agent_args(command, default_agent: str | None) -> None:
+    """The flags that pick what runs: agent, task, scene, weights (demo and eval)."""
+    command.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default=default_agent,
+                         help="random, scripted, the baselines gnbv and ges, or the learned a3de and i3de")
+    command.add_argument("--task", choices=list(TASKS), help="Table I preset: ap (active), ap-large, ip "
+                         "(interactive, piles); default ip for ges and i3de, ap otherwise")
+    command.add_argument("--scene", choices=SCENES, default="cubes", help="scene kind (default cubes)")
+    command.add_argument("--weights", help="a learned agent's checkpoint (default: weights/AGENT.pt, "
+                         "AGENT-large.pt on ap-large)")
 
 
 def build_parser() -> ArgumentParser:
@@ -3049,13 +2916,10 @@ def build_parser() -> ArgumentParser:
                             epilog="python objfind.py COMMAND --help lists a command's flags.")
     commands = parser.add_subparsers(dest="command", required=True)
     demo = commands.add_parser("demo", help="one episode to a PNG contact sheet and an MP4")
-    demo.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default="a3de", help=AGENT_HELP)
-    demo.add_argument("--task", choices=list(TASKS), help=TASK_HELP)
-    demo.add_argument("--scene", choices=SCENES, default="cubes", help=SCENE_HELP)
+    add_agent_args(demo, "a3de")
     demo.add_argument("--seed", type=count_arg, default=0, help="the scene's seed (default 0)")
     demo.add_argument("--out", default="out", help="output folder for demo-TASK-SCENE-AGENT.png and .mp4 "
                       "(default out; its parent must exist)")
-    demo.add_argument("--weights", help=WEIGHTS_HELP)
     demo.set_defaults(func=cmd_demo)
     training = commands.add_parser("train", help="train A3DE (ap) or I3DE (ip) with PPO; resumable")
     training.add_argument("--task", choices=list(TASKS),
@@ -3080,12 +2944,10 @@ def build_parser() -> ArgumentParser:
                           help="with --init: keep the moves and the critic, learn when to terminate afresh")
     training.set_defaults(func=cmd_train)
     evaluation = commands.add_parser("eval", help="paired evaluation episodes, or the whole Table II")
-    evaluation.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), help=AGENT_HELP)
+    add_agent_args(evaluation, None)
     evaluation.add_argument("--table", action="store_true",
                             help="every cell of Table II beside the paper: one CSV per cell in --out and "
                                  "table2.md; a cell whose CSV holds these seeds is read back, not run again")
-    evaluation.add_argument("--task", choices=list(TASKS), help=TASK_HELP)
-    evaluation.add_argument("--scene", choices=SCENES, default="cubes", help=SCENE_HELP)
     evaluation.add_argument("--episodes", type=positive_arg, default=100, help="episodes per cell (default 100)")
     evaluation.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1,
                             help="worker processes (default all cores); results do not depend on it")
@@ -3093,8 +2955,9 @@ def build_parser() -> ArgumentParser:
                             help="episode i uses scene seed + i for every agent, so agents meet the same scenes")
     evaluation.add_argument("--from-csv", action="store_true",
                             help="with --table: only read cells already run, print '-' for the others")
-    evaluation.add_argument("--weights", help=WEIGHTS_HELP)
-    evaluation.add_argument("--target-size", choices=("known", "unknown"), default="known", help=TARGET_SIZE_HELP)
+    evaluation.add_argument("--target-size", choices=("known", "unknown"), default="known",
+                            help="the information rule: every agent is told its target's size (known, Table II), "
+                                 "or no agent is (unknown: the ablation; use another --out for its table)")
     evaluation.add_argument("--out", help="CSV of every episode (with --table: a folder, default results)")
     evaluation.set_defaults(func=cmd_eval)
     bench = commands.add_parser("bench", help="per-stage step time and env steps/s")

@@ -209,7 +209,7 @@ def test_a_detection_to_the_gripper_left_lands_in_a_left_bin_whatever_the_yaw(ya
     for forward, left, bin_index in ((0.0, 0.1, 8 + 3 * 1 + 2), (0.0, -0.1, 8 + 3 * 1 + 0),
                                      (0.1, 0.0, 8 + 3 * 2 + 1), (0.0, 0.25, 4)):
         volume.detections[:] = 0
-        xy = ee[:2] + of.rotation_z(yaw)[:2, :2] @ [forward, left]
+        xy = ee[:2] + of.rotation(yaw, "z")[:2, :2] @ [forward, left]
         put(volume, volume.detections, xy, 0.05, 1.0)
         state = of.encode_state(volume, ee, yaw, 0.0, 0.2, 1.2, 1.0)
         assert np.argmax(state[51:68]) == bin_index and state[51 + bin_index] == 1.0
