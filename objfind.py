@@ -1555,6 +1555,8 @@ class ObjectFindingEnv(gym.Env):
     # --- one step: the data flow of Fig. 2 ------------------------------------------------------
 
     def step(self, action):
+        """Sec. III-B's step: the searcher turns the action into a pose; the world moves the gripper there,
+        pushing, renders, detects and judges; the searcher fuses the view and encodes the state."""
         action = self.checked_action(action)
         self.steps += 1
         reward = -self.cfg.time_penalty
@@ -2386,7 +2388,7 @@ def stored_cell(path: Path, seeds: list) -> list | None:
 def table_markdown(cells: dict, episodes: int) -> str:
     """Table II: ours ("success / steps") beside the paper's, per agent and scene kind, and the share of
     no-target scenes each agent ended correctly (pooled over its cells; the paper gives it in the text)."""
-    columns = [("ap", s) for s in SCENES[:1]] + [("ap-large", "cubes")] + [("ap", s) for s in SCENES[1:]]
+    columns = [("ap", "cubes"), ("ap-large", "cubes")] + [("ap", scene) for scene in SCENES[1:]]
     header = ["agent", "cubes", "cubes, large", "fixed prim.", "variable prim.", "random shapes", "object models",
               "no target"]
     lines = [f"Success % / average steps over {episodes} paired episodes per cell; the paper's below ours. "
@@ -2775,14 +2777,13 @@ def cmd_demo(args) -> int:
     return 0
 
 
-def print_summary(agent: str, task: str, scene: str, summary: dict) -> None:
-    s = summary
+def print_summary(agent: str, task: str, scene: str, cell: dict) -> None:
     fmt = lambda value, spec: "-" if np.isnan(value) else format(value, spec)   # a kind of scene not drawn
-    print(f"{agent} on {task}/{scene}, {s['episodes']} episodes: success {s['success']:.1f} % "
-          f"[{s['success_lo']:.1f}, {s['success_hi']:.1f}], steps {s['steps']:.2f} +- {s['steps_half']:.2f} "
-          f"({fmt(s['steps_with_target'], '.2f')} with a target), "
-          f"no-target success {fmt(s['no_target_success'], '.1f')} % of {s['no_target_episodes']}, "
-          f"decision {s['decision_ms']:.2f} ms/step")
+    print(f"{agent} on {task}/{scene}, {cell['episodes']} episodes: success {cell['success']:.1f} % "
+          f"[{cell['success_lo']:.1f}, {cell['success_hi']:.1f}], steps {cell['steps']:.2f} +- "
+          f"{cell['steps_half']:.2f} ({fmt(cell['steps_with_target'], '.2f')} with a target), "
+          f"no-target success {fmt(cell['no_target_success'], '.1f')} % of {cell['no_target_episodes']}, "
+          f"decision {cell['decision_ms']:.2f} ms/step")
 
 
 def eval_table(args) -> int:
@@ -2796,7 +2797,7 @@ def eval_table(args) -> int:
     suffix = "-size-unknown" if information_rule(args) else ""   # the ablation's files sit beside
     cells_of_table = [(agent, task, scene) for (agent, task), scenes in PAPER_TABLE_II.items() for scene in scenes]
     stored = {cell: stored_cell(out / f"{'-'.join(cell)}{suffix}.csv", seeds) for cell in cells_of_table}
-    cells = {}
+    cells, policies = {}, {}
     for (agent, task, scene), rows in stored.items():
         csv_path = out / f"{agent}-{task}-{scene}{suffix}.csv"
         if rows is None and args.from_csv:
@@ -2804,8 +2805,10 @@ def eval_table(args) -> int:
             continue
         if rows is None:
             try:
+                if agent in LEARNED and (agent, task) not in policies:   # each weights file read once
+                    policies[agent, task] = learned_policy(agent, task)
                 rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers,
-                                overrides=information_rule(args))
+                                policy=policies.get((agent, task)), overrides=information_rule(args))
             except UsageError as error:
                 print(f"{agent} on {task}/{scene}: - ({error})")
                 continue
