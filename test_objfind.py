@@ -1375,13 +1375,20 @@ def recorded_episode(agent_name: str, task: str, seed: int) -> tuple:
     return env.cfg, told, views, states, actions
 
 
+class NoPhysics:
+    """Stands in for pybullet: any use of it, or a new physics client, fails the test."""
+
+    def __getattr__(self, name):
+        raise AssertionError(f"pybullet's {name} was used")
+
+    def __call__(self, *args, **kwargs):
+        raise AssertionError("a physics client was opened")
+
+
 @pytest.fixture
 def no_physics(monkeypatch):
-    """Any attempt to open a physics client fails the test."""
-    def refuse(*args, **kwargs):
-        raise AssertionError("a physics client was opened")
-    monkeypatch.setattr(of.pb, "connect", refuse)
-    monkeypatch.setattr(of, "PhysicsClient", refuse)
+    monkeypatch.setattr(of, "pb", NoPhysics())
+    monkeypatch.setattr(of, "PhysicsClient", NoPhysics())
 
 
 @pytest.mark.parametrize("agent_name, task, seed", [("gnbv", "ap", 7), ("a3de", "ap", 7002), ("ges", "ip", 2)])
