@@ -350,7 +350,6 @@ class TSDFVolume:
         nx, ny, nz = self.shape
         self.column_xy = [c.reshape(-1) for c in np.meshgrid(self.axes[0], self.axes[1], indexing="ij")]
         self.flat_index = np.arange(nx * ny * nz, dtype=np.int32).reshape(self.shape)
-
         self.observed_count = 0   # running count of voxels with weight > 0, kept by integrate()
 
     def reset(self) -> None:
@@ -879,11 +878,6 @@ class GreedyNextBestView:
             best = int(np.argmax(gains))
             self.stalled = self.stalled + 1 if gains[best] < self.stall_voxels else 0
         return actions[best].astype(np.float32)
-
-
-def tour_length(points: np.ndarray, tour: np.ndarray, closed: bool = True) -> float:
-    legs = np.linalg.norm(np.diff(points[tour], axis=0), axis=1).sum()
-    return float(legs + (np.linalg.norm(points[tour[-1]] - points[tour[0]]) if closed else 0.0))
 
 
 def two_opt(points: np.ndarray, tour: np.ndarray, closed: bool = True) -> np.ndarray:
@@ -2894,13 +2888,14 @@ def cmd_bench(args) -> int:
 
 def cmd_soak(args) -> int:
     t0 = time.perf_counter()
-    c = run_soak(args.episodes, args.workers, args.seed)
-    print(f"soak: {c['episodes']} episodes, {c['steps']} steps over ap and ip x {len(SCENES)} scene kinds in "
-          f"{time.perf_counter() - t0:.0f} s; {c['refused']} non-finite actions refused; crashes {c['crashes']}, "
-          f"non-finite observations or rewards {c['non_finite']}, leaked connections {c['leaked']}")
-    if c["first_crash"]:
-        print(f"first crash: {c['first_crash']}")
-    return 1 if c["crashes"] or c["non_finite"] or c["leaked"] else 0
+    counts = run_soak(args.episodes, args.workers, args.seed)
+    print(f"soak: {counts['episodes']} episodes, {counts['steps']} steps over ap and ip x {len(SCENES)} scene "
+          f"kinds in {time.perf_counter() - t0:.0f} s; {counts['refused']} non-finite actions refused; crashes "
+          f"{counts['crashes']}, non-finite observations or rewards {counts['non_finite']}, leaked connections "
+          f"{counts['leaked']}")
+    if counts["first_crash"]:
+        print(f"first crash: {counts['first_crash']}")
+    return 1 if counts["crashes"] or counts["non_finite"] or counts["leaked"] else 0
 
 
 def add_agent_args(command, default_agent: str | None) -> None:
