@@ -35,16 +35,16 @@ import copy
 import csv
 import functools
 import gc
-import importlib
 import multiprocessing
 import os
 import re
 import shlex
 import signal
 import sys
-import tempfile
 import threading
 import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 import dataclasses
 from dataclasses import dataclass
 from typing import ClassVar
@@ -63,20 +63,15 @@ from torch import nn
 from tqdm import tqdm
 
 
-def _import_quietly(name: str):
-    """Import a module with file descriptor 2 silenced: pybullet prints its build date on import."""
-    sys.stderr.flush()
-    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 2)
-    try:
-        return importlib.import_module(name)
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved), os.close(devnull)
-
-
-pb = _import_quietly("pybullet")
-from pybullet_utils.bullet_client import BulletClient   # noqa: E402
+sys.stderr.flush()
+_saved_stderr, _devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+os.dup2(_devnull, 2)   # pybullet prints its build date on import: file descriptor 2 is silenced meanwhile
+try:
+    import pybullet as pb
+    from pybullet_utils.bullet_client import BulletClient
+finally:
+    os.dup2(_saved_stderr, 2)
+    os.close(_saved_stderr), os.close(_devnull)
 
 
 class UsageError(Exception):
@@ -284,17 +279,7 @@ def ppo_settings(values: dict) -> PPOSettings:
 # Perception (Sec. III-B.1): the robot's detector, a CIELAB colour detector of the red target.
 # ================================================================================================
 
-TARGET_RGBA = (0.85, 0.05, 0.05, 1.0)
-
-
-OTHER_RGBA = (  # clearly non-red: none of these passes the detector under any shading
-    (0.10, 0.30, 0.90, 1), (0.15, 0.65, 0.20, 1), (0.90, 0.85, 0.20, 1), (0.55, 0.55, 0.55, 1),
-    (0.20, 0.70, 0.80, 1), (0.92, 0.92, 0.92, 1), (0.35, 0.35, 0.40, 1), (0.45, 0.25, 0.75, 1),
-)
-
-FLOOR_RGBA, WALL_RGBA = (0.78, 0.76, 0.72, 1), (0.55, 0.6, 0.68, 1)   # pass as non-red too
 RED_MIN_CHROMA = 20.0            # CIELAB chroma sqrt(a*^2 + b*^2): saturated enough to be a colour
-
 RED_HUE_DEG = (-10.0, 50.0)      # CIELAB hue atan2(b*, a*): red, not orange, pink or purple
 
 
@@ -356,10 +341,6 @@ class TSDFVolume:
         self.tsdf.fill(0.0), self.weight.fill(0.0), self.detections.fill(0.0)
         self.target_area.fill(0.0)
         self.observed_count = 0
-
-    def observed(self) -> np.ndarray:
-        """(nx, ny, nz) bool: voxels seen at least once (weight above zero)."""
-        return self.weight > 0
 
     def explored_fraction(self) -> float:
         return self.observed_count / self.weight.size
@@ -583,7 +564,6 @@ GRIPPER_BOXES = (((0.045, 0.015, 0.01), (0.0, 0.0, -0.09)),
                  ((0.006, 0.012, 0.04), (-0.032, 0.0, -0.04)), ((0.006, 0.012, 0.04), (0.032, 0.0, -0.04)))
 
 FINGER_REACH_M = 0.038   # lateral reach of the fingers: how far a fingertip dips below the ee when rolled
-
 
 # Tool axes in the yaw frame at roll 0: x to the gripper's right, y backward, z down (the approach axis).
 R_YAW_TOOL = np.array([[0, -1, 0], [-1, 0, 0], [0, 0, -1.0]])
@@ -814,20 +794,6 @@ class GreedyNextBestView:
         depths = np.arange(camera.near_m, camera.far_m, searcher.volume.voxel_m)   # one sample per voxel
         self.ray_points = (rays[:, None, :] * depths[None, :, None]).astype(np.float32)   # (R, D, 3)
 
-    def candidate_actions(self) -> np.ndarray:
-        """(n, 6) random actions that do not terminate: the poses one step away."""
-        actions = self.rng.uniform(-1, 1, (self.samples, ACTION_SIZE))
-        actions[:, ACTION_MOVES] = -1.0
-        return actions
-
-    def perceived_target_centre(self, searcher: Searcher):
-        """World centre of the detection voxels above the threshold, or None when too few agree."""
-        volume = searcher.volume
-        hits = np.argwhere(volume.detections > searcher.detection_threshold)
-        if len(hits) < self.min_detections:   # a lone voxel is more likely noise than the target
-            return None
-        return volume.origin + (hits.mean(axis=0) + 0.5) * volume.voxel_m
-
     def newly_observed(self, searcher: Searcher, T_cameras: np.ndarray, ee_xyz) -> np.ndarray:
         """For each (4, 4) camera pose, the unobserved voxels in the gripper's crop its rays would reach, counted
         once. A ray stops at an observed voxel behind a surface, the floor or a wall; one that hits nothing
@@ -868,10 +834,13 @@ class GreedyNextBestView:
         if (searcher.volume.explored_fraction() > self.explored_to_stop or self.stalled >= self.stall_steps
                 or searcher.perceived_target_share() > searcher.seen_threshold):
             return stop_action()
-        actions = self.candidate_actions()
+        actions = self.rng.uniform(-1, 1, (self.samples, ACTION_SIZE))   # n random poses one step away
+        actions[:, ACTION_MOVES] = -1.0
         cameras = np.stack([searcher.camera_pose(searcher.goal_pose(T_world_tool, a)) for a in actions])
-        target = self.perceived_target_centre(searcher)
-        if target is not None:
+        volume = searcher.volume
+        hits = np.argwhere(volume.detections > searcher.detection_threshold)   # the perceived target
+        if len(hits) >= self.min_detections:   # a lone voxel is more likely noise than the target
+            target = volume.origin + (hits.mean(axis=0) + 0.5) * volume.voxel_m
             best = int(np.argmin(self.centring_error(cameras, target, searcher.rig.depth.K)))
         else:
             gains = self.newly_observed(searcher, cameras, T_world_tool[:3, 3])
@@ -1234,14 +1203,6 @@ def body_frame_mesh(sim, body: int, urdf_path: str, scale: float) -> tuple[np.nd
     return (v * scale - np.array(inertial_pos)) @ R, f
 
 
-def fibonacci_sphere(n: int) -> np.ndarray:
-    """(n, 3) unit vectors spread evenly over the sphere."""
-    k = np.arange(n) + 0.5
-    z = 1 - 2 * k / n
-    a = np.pi * (1 + 5 ** 0.5) * k
-    return np.stack([np.sqrt(1 - z ** 2) * np.cos(a), np.sqrt(1 - z ** 2) * np.sin(a), z], 1)
-
-
 @functools.lru_cache(maxsize=None)
 def exterior_surface(urdf_path: str, scale: float, min_cos: float, candidates: int = 8000, views: int = 40,
                      pixels: int = 128):
@@ -1261,7 +1222,10 @@ def exterior_surface(urdf_path: str, scale: float, min_cos: float, candidates: i
                       [0, pixels * distance / (2.4 * radius), pixels / 2], [0, 0, 1]])
         footprint = 2.4 * radius / pixels
         seen_from = np.zeros(len(points))             # signed: which side of the face was seen
-        for d in fibonacci_sphere(views):
+        k = np.arange(views) + 0.5               # view directions spread evenly: a Fibonacci lattice
+        height, turn = 1 - 2 * k / views, np.pi * (1 + 5 ** 0.5) * k
+        ring = np.sqrt(1 - height ** 2)
+        for d in np.stack([ring * np.cos(turn), ring * np.sin(turn), height], 1):
             z_axis = -d
             x_axis = np.cross(z_axis, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
             x_axis /= np.linalg.norm(x_axis)
@@ -1282,6 +1246,14 @@ def exterior_surface(urdf_path: str, scale: float, min_cos: float, candidates: i
     keep = seen_from != 0
     return points[keep], normals[keep] * seen_from[keep, None], mesh_area(vertices, faces) * keep.mean()
 
+
+# The scene's colours: the target red, everything else clearly not, under any shading (`detect_target`).
+TARGET_RGBA = (0.85, 0.05, 0.05, 1.0)
+OTHER_RGBA = (
+    (0.10, 0.30, 0.90, 1), (0.15, 0.65, 0.20, 1), (0.90, 0.85, 0.20, 1), (0.55, 0.55, 0.55, 1),
+    (0.20, 0.70, 0.80, 1), (0.92, 0.92, 0.92, 1), (0.35, 0.35, 0.40, 1), (0.45, 0.25, 0.75, 1),
+)
+FLOOR_RGBA, WALL_RGBA = (0.78, 0.76, 0.72, 1), (0.55, 0.6, 0.68, 1)
 
 # pybullet_data's household-like meshes with the global scaling that brings each near 5-8 cm
 OBJECT_MODELS = (("duck_vhacd.urdf", 0.6), ("teddy_vhacd.urdf", 0.6), ("objects/mug.urdf", 0.5),
@@ -1312,11 +1284,8 @@ def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) 
     if kind is not None:
         scale = rng.uniform(*cfg.variable_scale) if scene == "variable-primitives" else 1.0
         h = cfg.object_size_m * scale / 2
-        if kind == "cube":
-            (v, f), col = box_mesh((h, h, h)), dict(shapeType=pb.GEOM_BOX, halfExtents=[h, h, h])
-            vis = dict(col)
-        elif kind == "cuboid":
-            half = [1.5 * h, 0.75 * h, 0.75 * h]
+        if kind in ("cube", "cuboid"):
+            half = [h, h, h] if kind == "cube" else [1.5 * h, 0.75 * h, 0.75 * h]
             (v, f), col = box_mesh(half), dict(shapeType=pb.GEOM_BOX, halfExtents=half)
             vis = dict(col)
         elif kind == "cylinder":
@@ -1359,7 +1328,6 @@ def build_workspace(sim, cfg: Settings) -> tuple[int, int, int]:
         return sim.createMultiBody(0, sim.createCollisionShape(pb.GEOM_BOX, halfExtents=half_extents),
                                   sim.createVisualShape(pb.GEOM_BOX, halfExtents=half_extents, rgbaColor=rgba),
                                   pos)
-
     static_box([half + 2 * thick] * 2 + [thick], [0, 0, -thick], FLOOR_RGBA)
     wall_z = cfg.wall_height_m / 2
     for sx in (-1, 1):
@@ -1527,12 +1495,10 @@ class ObjectFindingEnv(gym.Env):
 
     def __init__(self, task: str = "ap", scene: str = "cubes", seed: int | None = None,
                  render_mode: str | None = None, **overrides):
-        if task not in TASKS:
-            raise ValueError(f"unknown task {task!r}; choose from {', '.join(TASKS)}")
-        if scene not in SCENES:
-            raise ValueError(f"unknown scene {scene!r}; choose from {', '.join(SCENES)}")
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"unsupported render_mode {render_mode!r}")
+        for name, value, known in (("task", task, TASKS), ("scene", scene, SCENES),
+                                   ("render_mode", render_mode, (None, "rgb_array"))):
+            if value not in known:
+                raise ValueError(f"unknown {name} {value!r}; choose from {', '.join(map(str, known))}")
         self.task, self.scene, self.render_mode = task, scene, render_mode
         try:   # e.g. target_size_known=False: any Settings field, for ablations
             self.cfg = dataclasses.replace(TASKS[task], **overrides)
@@ -1750,6 +1716,10 @@ class ObjectFindingEnv(gym.Env):
         rgb, depth = render_rgbd(self.sim, T, Camera(width, height, K, 0.05, 4 * self.cfg.workspace_m))
         return paint_gripper(rgb, depth, T, K, self.gripper_pose())
 
+    def __reduce__(self):
+        raise TypeError("an ObjectFindingEnv holds a live physics world and cannot be copied or pickled; make "
+                        "another with the same task, scene, settings and seed")
+
     def close(self):
         if getattr(self, "sim", None) is not None:
             self.sim.disconnect()
@@ -1923,40 +1893,69 @@ def read_checkpoint(path: Path, run: bool = False, state_size: int | None = None
     return checkpoint
 
 
+LOCK_NAME = ".objfind.lock"   # in an output folder while a run writes into it: its process id
+HELD_LOCKS: set = set()        # the locks this process holds, released when its command ends
+
+
+def lock_owner(lock: Path) -> int | None:
+    """The live process holding an output folder's lock, or None if it is free or its holder is gone."""
+    try:
+        pid = int(lock.read_text())
+        os.kill(pid, 0)            # no signal sent: only asks whether the process exists
+        return pid
+    except (OSError, ValueError):
+        return None
+
+
 def writable_folder(path: Path) -> Path:
-    """`path` as an output folder, made if missing (its parent must exist), checked by writing a file
-    into it: permission bits alone do not tell (root ignores them, a read-only filesystem does not)."""
+    """`path` as this run's output folder: made if missing (its parent must exist) and locked, so that a
+    second run into it is refused. Taking the lock writes a file, which proves the folder can be written
+    (permission bits do not tell: root ignores them, a read-only filesystem does not)."""
     if path.exists() and not path.is_dir():
         raise UsageError(f"{str(path)!r} exists and is not a folder")
     if not path.parent.is_dir():
         raise UsageError(f"the parent of the output folder {str(path)!r} does not exist")
+    lock, mine = path / LOCK_NAME, path / f"{LOCK_NAME}.{os.getpid()}"
     try:
         path.mkdir(exist_ok=True)
-        with tempfile.TemporaryFile(dir=path):
-            pass
+        owner = lock_owner(lock)
+        if owner not in (None, os.getpid()):
+            raise UsageError(f"{str(path)!r} is being written by another objfind run (process {owner}): "
+                             "wait for it to end, or pick another output")
+        if owner is None:          # free, or left by a run that died: taken atomically, content and all
+            mine.write_text(str(os.getpid()))
+            lock.unlink(missing_ok=True)
+            try:
+                os.link(mine, lock)
+            finally:
+                mine.unlink()
+            HELD_LOCKS.add(lock)
+    except FileExistsError:
+        raise UsageError(f"{str(path)!r} was just taken by another objfind run: pick another output") from None
     except OSError as error:
         raise UsageError(f"cannot write into {str(path)!r} ({error.strerror or error})") from None
     return path
 
 
-def writable_file(path: Path) -> Path:
-    """`path` as an output file: not a folder, in a folder that can be written (files are written
-    beside their final name and renamed onto it)."""
-    if path.is_dir():
-        raise UsageError(f"{str(path)!r} is a folder, not a file")
-    if not path.parent.is_dir():
-        raise UsageError(f"the folder of the output file {str(path)!r} does not exist")
-    writable_folder(path.parent)
-    return path
+def release_locks() -> None:
+    for lock in [lock for lock in HELD_LOCKS if lock_owner(lock) == os.getpid()]:
+        lock.unlink(missing_ok=True)
+    HELD_LOCKS.clear()
 
 
 def replace_atomically(path: Path, write) -> None:
-    """write(tmp), then rename tmp onto path, so a killed run never leaves a half-written file. The
-    temporary name keeps the suffix (OpenCV picks the format by it). A failed write is one UsageError
-    line, and its temporary file is removed."""
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    """write(tmp) to this process's own temporary name beside `path` (keeping the suffix, by which OpenCV
+    picks the format), flushed to disk, then renamed onto path: a killed run never leaves a half-written
+    file, two runs never share one. Nothing is installed into a folder another live run has locked; a
+    failed write is one UsageError line, and its temporary file is removed."""
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
     try:
         write(tmp)
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        owner = lock_owner(path.parent / LOCK_NAME)
+        if owner not in (None, os.getpid()):
+            raise OSError(f"another objfind run (process {owner}) took over the folder")
         os.replace(tmp, path)
     except (OSError, RuntimeError) as error:
         try:
@@ -2067,6 +2066,22 @@ def ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+def process_pool(workers: int, initializer=ignore_sigint, initargs=()) -> ProcessPoolExecutor:
+    """`workers` spawned processes that ignore Ctrl-C (the parent handles it); one that dies (killed, out
+    of memory) breaks the pool, so waiting on it raises BrokenProcessPool instead of hanging."""
+    return ProcessPoolExecutor(workers, multiprocessing.get_context("spawn"), initializer, initargs)
+
+
+def stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel what waits and end what runs, at once: Ctrl-C must not wait for a running job."""
+    processes = list((pool._processes or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.terminate()
+
+
+DEAD_WORKER = "a worker process died (killed, or out of memory?)"
+
 ROLLOUT_WORKER: dict = {}   # per worker process: its env and its copy of the policy
 
 
@@ -2093,27 +2108,22 @@ def rollout_collector(make_env, env, obs_dim: int, ppo: PPOSettings, streams: in
     def jobs(weights: dict, update: int) -> list:
         return [(weights, steps, derived_seed(seed, update, w, 0), derived_seed(seed, update, w, 1))
                 for w in range(streams)]
-
     if processes > 1:
         env.close()
-        pool = multiprocessing.get_context("spawn").Pool(processes, start_rollout_worker,
-                                                         (make_env, obs_dim, ppo, True))
-        return (lambda weights, update: pool.starmap(run_rollout_worker, jobs(weights, update))), pool.terminate
+        pool = process_pool(processes, start_rollout_worker, (make_env, obs_dim, ppo, True))
+        return (lambda weights, update: list(pool.map(run_rollout_worker, *zip(*jobs(weights, update)))),
+                lambda: stop_pool(pool))
     start_rollout_worker(lambda: env, obs_dim, ppo)
     return (lambda weights, update: [run_rollout_worker(*job) for job in jobs(weights, update)],
             lambda: ROLLOUT_WORKER.pop("env").close())
 
 
-def stop_as_ctrl_c(signum, frame):
-    raise KeyboardInterrupt   # SIGTERM (a scheduler's stop) ends training as Ctrl-C does
-
-
 class TrainingInterrupted(Exception):
-    """Ctrl-C or SIGTERM stopped `train`; the last finished update is in the checkpoint."""
+    """Ctrl-C, SIGTERM or a dead worker stopped `train`; the last finished update is in the checkpoint."""
 
-    def __init__(self, update: int, env_steps: int, path: Path):
+    def __init__(self, update: int, env_steps: int, path: Path, worker_died: bool = False):
         super().__init__(f"update {update} ({env_steps} env steps)")
-        self.update, self.env_steps, self.path = update, env_steps, path
+        self.update, self.env_steps, self.path, self.worker_died = update, env_steps, path, worker_died
 
 
 def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSettings(), workers: int = 1,
@@ -2157,10 +2167,11 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
                     optimizer=copy.deepcopy(optimizer.state_dict()), update=update, env_steps=env_steps,
                     wall_s=wall_s, seed=seed, obs_dim=obs_dim, settings=vars(ppo).copy(), rollout_streams=streams,
                     **(meta or {}))
-
     latest, saved_update, recent = None, update, []
     bar = tqdm(total=total_steps, initial=min(env_steps, total_steps), unit="step", disable=not progress,
                file=sys.stderr, desc="train")
+    def stop_as_ctrl_c(signum, frame):
+        raise KeyboardInterrupt   # SIGTERM (a scheduler's stop) ends training as Ctrl-C does
     handles_sigterm = threading.current_thread() is threading.main_thread()
     previous_handler = signal.signal(signal.SIGTERM, stop_as_ctrl_c) if handles_sigterm else None
     try:
@@ -2180,13 +2191,14 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
             bar.update(min(env_steps, total_steps) - bar.n)
             bar.set_postfix(steps_per_s=f"{row['env_steps'] / (time.perf_counter() - t0):.0f}",
                             success=f"{np.mean([e['success'] for e in recent]) if recent else 0:.2f}")
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, BrokenProcessPool) as stop:
         if latest is not None and latest["update"] > saved_update:
             save_checkpoint(ckpt_path, latest)
             write_csv([r for r in log_rows if int(r["update"]) <= latest["update"]], log_path, TRAIN_LOG_FIELDS)
             plot_learning_curve(log_rows, out_dir / "curve.png")
         kept = latest or resume
-        raise TrainingInterrupted(kept["update"] if kept else 0, kept["env_steps"] if kept else 0, ckpt_path) from None
+        raise TrainingInterrupted(kept["update"] if kept else 0, kept["env_steps"] if kept else 0, ckpt_path,
+                                  isinstance(stop, BrokenProcessPool)) from None
     finally:
         bar.close()
         if handles_sigterm:
@@ -2213,7 +2225,6 @@ PAPER_TABLE_II = {   # (agent, task): {scene: (success %, average steps)}, 1000 
 }
 
 PAPER_NO_TARGET = {"a3de": 100.0, "i3de": 96.1}   # % of no-target scenes ended correctly (Sec. V-A)
-
 
 BASELINES = {"random": RandomAgent, "scripted": ScriptedAgent, "gnbv": GreedyNextBestView,
              "ges": GridExhaustiveSearch}
@@ -2256,18 +2267,17 @@ def run_episode(env: ObjectFindingEnv, agent, seed: int) -> dict:
 
 
 def run_jobs(function, jobs: list, workers: int, done=None) -> list:
-    """function(*job) for every job, in `workers` spawned processes or in this one when workers is 1;
+    """function(*job) for every job, in `workers` worker processes or in this one when workers is 1;
     the results in job order, each also handed to done() as it arrives (for progress bars)."""
-    results = []
-    if workers <= 1:
-        for job in jobs:
-            results.append(function(*job))
+    results, pool = [], process_pool(workers) if workers > 1 else None
+    try:
+        for job in [pool.submit(function, *job) for job in jobs] if pool else jobs:
+            results.append(job.result() if pool else function(*job))
             done and done(results[-1])
-        return results
-    with multiprocessing.get_context("spawn").Pool(workers, ignore_sigint) as pool:
-        for pending in [pool.apply_async(function, job) for job in jobs]:
-            results.append(pending.get())
-            done and done(results[-1])
+    except BrokenProcessPool:
+        raise UsageError(f"{DEAD_WORKER}: stopped; what was already written is kept") from None
+    finally:
+        pool and stop_pool(pool)
     return results
 
 
@@ -2295,10 +2305,9 @@ def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 
     seeds = list(range(seed, seed + episodes))
     jobs = [(agent_name, task, scene, seeds[i:i + EVAL_CHUNK], policy, overrides)
             for i in range(0, episodes, EVAL_CHUNK)]
-    bar = tqdm(total=episodes, desc=f"{agent_name} {task}/{scene}", unit="ep", disable=not progress,
-               file=sys.stderr)
-    parts = run_jobs(evaluate_chunk, jobs, workers, lambda part: bar.update(len(part)))
-    bar.close()
+    with tqdm(total=episodes, desc=f"{agent_name} {task}/{scene}", unit="ep", disable=not progress,
+              file=sys.stderr) as bar:
+        parts = run_jobs(evaluate_chunk, jobs, workers, lambda part: bar.update(len(part)))
     return sorted((row for part in parts for row in part), key=lambda r: r["seed"])
 
 
@@ -2334,10 +2343,9 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
 
 def parse_bool(text: str) -> bool:
     """True/False whatever the case (a spreadsheet writes TRUE), or 1/0; anything else is an error."""
-    value = {"true": True, "1": True, "false": False, "0": False}.get(text.strip().lower())
-    if value is None:
+    if text.strip().lower() not in ("true", "1", "false", "0"):
         raise ValueError(f"{text!r} is not true or false")
-    return value
+    return text.strip().lower() in ("true", "1")
 
 
 def read_episodes(path: Path) -> list:
@@ -2525,8 +2533,11 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
         for frame in frames:
             writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
         writer.release()
-        if not tmp.is_file() or tmp.stat().st_size == 0:
-            raise OSError("OpenCV wrote no video")
+        video, read = cv2.VideoCapture(str(tmp)), 0     # read back: OpenCV reports no write error itself
+        while video.read()[0]:
+            read += 1
+        if read != len(frames):
+            raise OSError(f"the video holds {read} of its {len(frames)} frames (a full disk?)")
     replace_atomically(mp4, write_video)
     return png, mp4, info
 
@@ -2547,45 +2558,35 @@ BENCH_STAGES = (("physics", "_drive_gripper"), ("render", "_render"), ("detect",
 
 
 def bench_stages(task: str, steps: int, seed: int = 0) -> dict:
-    """Mean milliseconds per stage of one step on task/cubes, over `steps` exploring steps: each stage's
-    method of the env (or its searcher) is wrapped in a timer, so the step itself carries none."""
+    """Mean milliseconds per stage of a step on task/cubes over `steps` exploring steps, and of a reset:
+    each stage's method of the env (or its searcher) is wrapped in a timer, so the step carries none."""
     env = ObjectFindingEnv(task, "cubes")
     env.reset(seed=seed + 1000)     # warm-up: the first reset in a process pays one-time costs
-    totals = dict.fromkeys([stage for stage, _ in BENCH_STAGES] + ["step", "reset"], 0.0)
-    in_step = [False]               # a reset renders, detects, fuses and encodes too: not counted
+    totals, counting = dict.fromkeys([stage for stage, _ in BENCH_STAGES] + ["step", "reset"], 0.0), [False]
 
-    def timed(stage, method):
+    def timed(stage, method):       # a reset renders, detects, fuses and encodes too: not counted
         def run(*args, **kwargs):
             t0 = time.perf_counter()
-            try:
-                return method(*args, **kwargs)
-            finally:
-                totals[stage] += (time.perf_counter() - t0) * in_step[0]
+            result = method(*args, **kwargs)
+            totals[stage] += (time.perf_counter() - t0) * counting[0]
+            return result
         return run
-
     for stage, name in BENCH_STAGES:
-        owner = env.searcher if name.startswith("searcher.") else env
-        name = name.removeprefix("searcher.")
+        owner, name = (env.searcher, name.removeprefix("searcher.")) if "." in name else (env, name)
         setattr(owner, name, timed(stage, getattr(owner, name)))
-    resets = 1
-    t0 = time.perf_counter()
+    t0, resets = time.perf_counter(), 1
     env.reset(seed=seed)
     totals["reset"] += time.perf_counter() - t0
     for action in exploring_actions(np.random.default_rng(seed), steps):
-        in_step[0] = True
-        t0 = time.perf_counter()
-        *_, done, _, _ = env.step(action)
-        totals["step"] += time.perf_counter() - t0
-        in_step[0] = False
+        counting[0], t0 = True, time.perf_counter()
+        done = env.step(action)[2]
+        totals["step"], counting[0] = totals["step"] + time.perf_counter() - t0, False
         if done:
-            t0 = time.perf_counter()
+            t0, resets = time.perf_counter(), resets + 1
             env.reset()
             totals["reset"] += time.perf_counter() - t0
-            resets += 1
     env.close()
-    means = {stage: 1e3 * total / steps for stage, total in totals.items()}
-    means["reset"] = 1e3 * totals["reset"] / resets
-    return means
+    return {stage: 1e3 * total / (resets if stage == "reset" else steps) for stage, total in totals.items()}
 
 
 def bench_throughput(task: str, steps: int, seed: int = 0) -> float:
@@ -2643,8 +2644,7 @@ def soak_chunk(task: str, scene: str, seeds: list) -> dict:
     """Episodes of random actions, a fresh env each, every other one dropped without close(). Counts
     crashes (any error but a refused non-finite action), non-finite observations or rewards, and
     pybullet connections still open once the envs are gone."""
-    counts = dict(SOAK_COUNTS)
-    clients = []
+    counts, clients = dict(SOAK_COUNTS), []
     for seed in seeds:
         rng = np.random.default_rng(seed)
         env = ObjectFindingEnv(task, scene)
@@ -2687,15 +2687,13 @@ def run_soak(episodes: int, workers: int, seed: int = 0, progress: bool = True) 
     jobs = [(*kind, part[i:i + EVAL_CHUNK]) for kind, part in zip(kinds, per_kind)
             for i in range(0, len(part), EVAL_CHUNK)]
     total = dict(SOAK_COUNTS)
-    bar = tqdm(total=episodes, desc="soak", unit="ep", disable=not progress, file=sys.stderr)
+    with tqdm(total=episodes, desc="soak", unit="ep", disable=not progress, file=sys.stderr) as bar:
+        def add(part):
+            for k, v in part.items():
+                total[k] = (total[k] or v) if k == "first_crash" else total[k] + v
+            bar.update(part["episodes"] + part["crashes"])
 
-    def add(part):
-        for k, v in part.items():
-            total[k] = (total[k] or v) if k == "first_crash" else total[k] + v
-        bar.update(part["episodes"] + part["crashes"])
-
-    run_jobs(soak_chunk, jobs, workers, add)
-    bar.close()
+        run_jobs(soak_chunk, jobs, workers, add)
     return total
 
 
@@ -2742,9 +2740,7 @@ def ppo_setting_arg(text: str) -> tuple[str, float]:
     return name, typed
 
 
-def default_task(agent: str | None) -> str:
-    """The task an agent was built for when --task is not given: ip for GES and I3DE, ap otherwise."""
-    return "ip" if agent in ("ges", "i3de") else "ap"
+INTERACTIVE_AGENTS = ("ges", "i3de")   # without --task these run on ip, the rest on ap
 
 
 def information_rule(args) -> dict:
@@ -2761,7 +2757,7 @@ def agent_policy(args) -> dict | None:
 
 
 def cmd_demo(args) -> int:
-    args.task = args.task or default_task(args.agent)
+    args.task = args.task or ("ip" if args.agent in INTERACTIVE_AGENTS else "ap")
     policy, out = agent_policy(args), writable_folder(Path(args.out))
     png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, out, policy)
     outcome = "success" if info["success"] else "failure"
@@ -2794,30 +2790,27 @@ def eval_table(args) -> int:
     cells, policies = {}, {}
     for (agent, task, scene), rows in stored.items():
         csv_path = out / f"{agent}-{task}-{scene}{suffix}.csv"
-        if rows is None and args.from_csv:
-            print(f"{agent} on {task}/{scene}: - (not run yet: no {csv_path})")
+        try:
+            if rows is None and args.from_csv:
+                raise UsageError(f"not run yet: no {csv_path}")
+            if rows is None and agent in LEARNED and (agent, task) not in policies:   # each read once
+                policies[agent, task] = learned_policy(agent, task)
+        except UsageError as error:       # the cell is missing; the others go on
+            print(f"{agent} on {task}/{scene}: - ({error})")
             continue
         if rows is None:
-            try:
-                if agent in LEARNED and (agent, task) not in policies:   # each weights file read once
-                    policies[agent, task] = learned_policy(agent, task)
-                rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers,
-                                policy=policies.get((agent, task)), overrides=information_rule(args))
-            except UsageError as error:
-                print(f"{agent} on {task}/{scene}: - ({error})")
-                continue
+            rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers,
+                            policy=policies.get((agent, task)), overrides=information_rule(args))
             write_csv(rows, csv_path)
         cells[(agent, task, scene)] = summarise(rows)
         print_summary(agent, task, scene, cells[(agent, task, scene)])
-    markdown = table_markdown(cells, args.episodes)
+    markdown, table = table_markdown(cells, args.episodes), out / f"table2{suffix}.md"
+    if len(cells) == len(stored):      # written before it is printed: a closed output loses nothing
+        replace_atomically(table, lambda tmp: tmp.write_text(markdown + "\n"))
     print(markdown)
-    missing = len(stored) - len(cells)
-    if missing:
-        print(f"{missing} of {len(stored)} cells missing: {out / f'table2{suffix}.md'} not written; "
-              f"the {len(cells)} finished cells are in {out}")
-        return 0
-    replace_atomically(out / f"table2{suffix}.md", lambda tmp: tmp.write_text(markdown + "\n"))
-    print(f"wrote {out / f'table2{suffix}.md'} and one CSV per cell in {out}")
+    print(f"wrote {table} and one CSV per cell in {out}" if len(cells) == len(stored) else
+          f"{len(stored) - len(cells)} of {len(stored)} cells missing: {table} not written; the {len(cells)} "
+          f"finished cells are in {out}")
     return 0
 
 
@@ -2826,14 +2819,19 @@ def cmd_eval(args) -> int:
         return eval_table(args)
     if args.agent is None:
         raise UsageError("eval needs --agent or --table")
-    args.task = args.task or default_task(args.agent)
-    csv_path = writable_file(Path(args.out)) if args.out else None
+    args.task = args.task or ("ip" if args.agent in INTERACTIVE_AGENTS else "ap")
+    csv_path = Path(args.out) if args.out else None
+    if csv_path is not None:           # a file, in a folder this run can write and has locked
+        if csv_path.is_dir():
+            raise UsageError(f"{str(csv_path)!r} is a folder, not a file")
+        writable_folder(csv_path.parent)
     policy = agent_policy(args)
     rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, policy=policy,
                     overrides=information_rule(args))
+    if csv_path:
+        write_csv(rows, csv_path)      # before anything is printed: a closed output loses nothing
     print_summary(args.agent, args.task, args.scene, summarise(rows))
     if csv_path:
-        write_csv(rows, csv_path)
         print(f"wrote {csv_path}")
     return 0
 
@@ -2874,8 +2872,8 @@ def cmd_train(args) -> int:
                        resume=run, meta=meta, init=init, fresh_terminate=args.fresh_terminate)
     except TrainingInterrupted as stop:
         kept = f"kept {stop} in {stop.path}; resume with: {resume}" if stop.update else "nothing was kept"
-        sys.stderr.write(f"objfind: interrupted; {kept}\n")
-        return 130
+        sys.stderr.write(f"objfind: {DEAD_WORKER if stop.worker_died else 'interrupted'}; {kept}\n")
+        return 2 if stop.worker_died else 130
     print(f"trained {result['env_steps']} env steps in {result['update']} updates; "
           f"wrote {out / 'checkpoint.pt'}, {out / 'log.csv'} and {out / 'curve.png'}")
     return 0
@@ -2981,9 +2979,14 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"objfind: error: {error}\n")
         return 2
     except KeyboardInterrupt:
-        kept = " (each finished cell's CSV is kept: the same command goes on)" if args.command == "eval" else ""
-        sys.stderr.write(f"objfind: interrupted{kept}\n")
+        table = args.command == "eval" and args.table
+        sys.stderr.write(f"objfind: interrupted{' (each finished cell is kept: the same command goes on)' * table}\n")
         return 130
+    except BrokenPipeError:   # the reader went away (| head): results are already written; say nothing more
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+    finally:
+        release_locks()
 
 
 if __name__ == "__main__":

@@ -129,13 +129,13 @@ def test_tsdf_of_a_plane_at_a_known_depth():
     band = np.abs(z_of(volume, ks) - 0.1) < 0.04 - volume.voxel_m
     assert np.all(np.abs(t[band]) < 1.0)
     assert 0 < volume.explored_fraction() < 1
-    assert volume.observed_count == np.count_nonzero(volume.observed())
+    assert volume.observed_count == np.count_nonzero((volume.weight > 0))
 
 
 def test_integration_only_touches_the_frustum():
     volume = small_volume()
     plane_view(volume, plane_z=0.0, camera_z=0.1)   # a low camera sees a small patch of floor
-    observed = volume.observed()
+    observed = (volume.weight > 0)
     assert observed[50, 50].any()
     assert not observed[:10].any() and not observed[-10:].any()
 
@@ -1473,3 +1473,114 @@ def test_train_runs_in_a_fresh_clone(tmp_path):
                           text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert of.read_checkpoint(clone / "runs" / "ip-cubes" / "checkpoint.pt", run=True)["update"] == 1
+
+
+# ------------------------------------------------------------------------------------------------
+# two runs at once, a closed output, a full disk, a dead worker: nothing lost, nothing false
+# ------------------------------------------------------------------------------------------------
+
+def fake_rows(seed: int, episodes: int) -> list:
+    return [dict(seed=s, target_present=True, success=True, steps=3, target_seen_fraction=0.3,
+                 explored_fraction=0.2, decision_ms=1.0) for s in range(seed, seed + episodes)]
+
+
+def test_a_second_run_into_a_folder_being_written_is_refused_and_the_first_keeps_its_cells(tmp_path, capsys,
+                                                                                        monkeypatch):
+    out, second = tmp_path / "results", []
+
+    def evaluate_while_a_second_run_starts(agent, task, scene, episodes, seed, workers, **kwargs):
+        if not second:   # the same job submitted twice: a real second process into the same folder
+            second.append(subprocess.run([sys.executable, "objfind.py", "eval", "--table", "--episodes", "2",
+                                          "--out", str(out)], cwd=HERE, capture_output=True, text=True))
+        return fake_rows(seed, episodes)
+    monkeypatch.setattr(of, "evaluate", evaluate_while_a_second_run_starts)
+    assert of.main(["eval", "--table", "--episodes", "1", "--out", str(out)]) == 0
+    refused = second[0]
+    assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+    assert "being written by another objfind run" in refused.stderr
+    cells = sorted(out.glob("*.csv"))
+    assert len(cells) == 22 and all(len(of.read_episodes(cell)) == 1 for cell in cells)   # all the first run's
+    assert (out / "table2.md").exists() and not list(out.glob(".*"))      # no lock or temporary file left
+    # a lock left by a run that died is taken over; one held by a live process is not
+    (out / of.LOCK_NAME).write_text("999999999")
+    assert of.main(["eval", "--table", "--from-csv", "--episodes", "1", "--out", str(out)]) == 0
+    (out / of.LOCK_NAME).write_text(str(subprocess.Popen(["sleep", "30"]).pid))
+    capsys.readouterr()
+    assert "being written" in one_line_exit_two(capsys, ["train", "--out", str(out)])
+
+
+def test_eval_into_a_closed_pipe_still_writes_its_csv(tmp_path):
+    csv_path = tmp_path / "episodes.csv"
+    done = subprocess.run(f"{sys.executable} objfind.py eval --agent random --episodes 2 --workers 1 "
+                          f"--out {csv_path} | head -0", shell=True, cwd=HERE, capture_output=True, text=True)
+    assert "Traceback" not in done.stderr, done.stderr
+    assert len(of.read_episodes(csv_path)) == 2
+
+
+def test_a_video_that_could_not_be_written_whole_leaves_the_old_one_and_exits_two(tmp_path, capsys, monkeypatch):
+    video = tmp_path / "demo-ap-cubes-random.mp4"
+    video.write_bytes(b"the good video of an earlier run")
+    real_writer = of.cv2.VideoWriter
+
+    class FullDisk:   # as on a full disk: frames after the first few are lost, and OpenCV says nothing
+        def __init__(self, *args):
+            self.writer, self.frames = real_writer(*args), 0
+
+        def isOpened(self):
+            return self.writer.isOpened()
+
+        def write(self, frame):
+            self.frames += 1
+            if self.frames <= 2:
+                self.writer.write(frame)
+
+        def release(self):
+            self.writer.release()
+    monkeypatch.setattr(of.cv2, "VideoWriter", FullDisk)
+    err = one_line_exit_two(capsys, ["demo", "--agent", "random", "--seed", "2", "--out", str(tmp_path)])
+    assert "frames" in err and video.read_bytes() == b"the good video of an earlier run"
+    assert not list(tmp_path.glob("*tmp*"))
+
+
+def worker_processes(parent: int) -> list:
+    """The pids of `parent`'s spawned worker processes (Linux /proc)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields, cmdline = stat.read_text().rsplit(")", 1)[1].split(), (stat.parent / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(fields[1]) == parent and b"spawn_main" in cmdline:
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds worker processes through /proc")
+@pytest.mark.parametrize("command", [["eval", "--agent", "gnbv", "--episodes", "200", "--out", "episodes.csv"],
+                                     ["train", "--steps", "200000", "--set", "batch_steps=4000", "--out", "run"]])
+def test_a_killed_worker_ends_the_command_with_one_line_and_exit_two(command, tmp_path):
+    import os
+    import signal
+    import time
+    run = subprocess.Popen([sys.executable, str(HERE / "objfind.py"), *command, "--workers", "2"], cwd=tmp_path,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not (workers := worker_processes(run.pid)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert workers, "no worker process started"
+    time.sleep(2)
+    os.kill(workers[0], signal.SIGKILL)               # as the OOM killer would
+    _, err = run.communicate(timeout=60)              # ends within a bounded time, never hangs
+    said = [line for line in err.replace("\r", "\n").splitlines() if line.startswith("objfind:")]   # no bar
+    assert run.returncode == 2 and len(said) == 1 and "worker process died" in said[0], err
+
+
+def test_an_env_refuses_to_be_copied_and_goes_on(ap_env):
+    import copy
+    import pickle
+    ap_env.reset(seed=1)
+    for copy_it in (copy.deepcopy, copy.copy, pickle.dumps):
+        with pytest.raises(TypeError, match="cannot be copied"):
+            copy_it(ap_env)
+    obs, *_ = ap_env.step(np.zeros(6))
+    assert np.all(np.isfinite(obs))
