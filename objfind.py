@@ -2354,7 +2354,7 @@ def read_episodes(path: Path) -> list:
     kinds = dict(seed=int, target_present=parse_bool, success=parse_bool, steps=int, target_seen_fraction=float,
                  explored_fraction=float, decision_ms=float)
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:   # a spreadsheet may add a byte-order mark
             reader = csv.DictReader(f)
             header = reader.fieldnames or []
             if sorted(header) != sorted(EPISODE_FIELDS):

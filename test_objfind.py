@@ -1584,3 +1584,10 @@ def test_an_env_refuses_to_be_copied_and_goes_on(ap_env):
             copy_it(ap_env)
     obs, *_ = ap_env.step(np.zeros(6))
     assert np.all(np.isfinite(obs))
+
+
+def test_a_csv_saved_by_a_spreadsheet_with_a_byte_order_mark_reads_back(tmp_path):
+    path = tmp_path / "cell.csv"
+    of.write_csv(fake_rows(0, 3), path)
+    path.write_bytes("\ufeff".encode() + path.read_bytes())
+    assert [row["seed"] for row in of.read_episodes(path)] == [0, 1, 2]
