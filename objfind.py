@@ -1907,7 +1907,7 @@ def lock_owner(lock: Path) -> int | None:
         return None
 
 
-def writable_folder(path: Path) -> Path:
+def writable_folder(path: Path, take_lock: bool = True) -> Path:
     """`path` as this run's output folder: made if missing (its parent must exist) and locked, so that a
     second run into it is refused. Taking the lock writes a file, which proves the folder can be written
     (permission bits do not tell: root ignores them, a read-only filesystem does not)."""
@@ -1918,7 +1918,7 @@ def writable_folder(path: Path) -> Path:
     lock, mine = path / LOCK_NAME, path / f"{LOCK_NAME}.{os.getpid()}"
     try:
         path.mkdir(exist_ok=True)
-        owner = lock_owner(lock)
+        owner = lock_owner(lock) if take_lock else os.getpid()   # a folder of run folders is not locked
         if owner not in (None, os.getpid()):
             raise UsageError(f"{str(path)!r} is being written by another objfind run (process {owner}): "
                              "wait for it to end, or pick another output")
@@ -2167,11 +2167,13 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
                     optimizer=copy.deepcopy(optimizer.state_dict()), update=update, env_steps=env_steps,
                     wall_s=wall_s, seed=seed, obs_dim=obs_dim, settings=vars(ppo).copy(), rollout_streams=streams,
                     **(meta or {}))
+
+    def stop_as_ctrl_c(signum, frame):
+        raise KeyboardInterrupt   # SIGTERM (a scheduler's stop) ends training as Ctrl-C does
+
     latest, saved_update, recent = None, update, []
     bar = tqdm(total=total_steps, initial=min(env_steps, total_steps), unit="step", disable=not progress,
                file=sys.stderr, desc="train")
-    def stop_as_ctrl_c(signum, frame):
-        raise KeyboardInterrupt   # SIGTERM (a scheduler's stop) ends training as Ctrl-C does
     handles_sigterm = threading.current_thread() is threading.main_thread()
     previous_handler = signal.signal(signal.SIGTERM, stop_as_ctrl_c) if handles_sigterm else None
     try:
@@ -2853,7 +2855,7 @@ def cmd_train(args) -> int:
             setattr(args, flag, given or stored or default)
     else:
         args.task, args.scene = args.task or "ap", args.scene or "cubes"
-        out = Path(args.out) if args.out else writable_folder(Path("runs")) / f"{args.task}-{args.scene}"
+        out = Path(args.out) if args.out else writable_folder(Path("runs"), False) / f"{args.task}-{args.scene}"
         if (out / "checkpoint.pt").exists():
             raise UsageError(f"{str(out)!r} already holds a run: add --resume to continue it, or pick another --out")
         if args.fresh_terminate and not args.init:

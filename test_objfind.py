@@ -1591,3 +1591,17 @@ def test_a_csv_saved_by_a_spreadsheet_with_a_byte_order_mark_reads_back(tmp_path
     of.write_csv(fake_rows(0, 3), path)
     path.write_bytes("\ufeff".encode() + path.read_bytes())
     assert [row["seed"] for row in of.read_episodes(path)] == [0, 1, 2]
+
+
+def test_runs_into_different_run_folders_go_on_side_by_side(tmp_path):
+    of.writable_folder(tmp_path / "runs")                        # as a run holds it: its own folder only
+    of.writable_folder(tmp_path / "runs" / "ap-cubes")
+    try:
+        small = ["--steps", "24", "--set", "batch_steps=24", "--set", "minibatch=12", "--workers", "1"]
+        train = lambda task: subprocess.run([sys.executable, str(HERE / "objfind.py"), "train", "--task", task, *small],
+                                            cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        beside, same = train("ip"), train("ap")
+        assert beside.returncode == 0, beside.stderr[-500:]
+        assert same.returncode == 2 and "being written" in same.stderr
+    finally:
+        of.release_locks()
