@@ -312,6 +312,12 @@ def surface_derivative(points: np.ndarray, axis: int) -> np.ndarray:
     return np.where(use_forward[..., None], forward, backward)
 
 
+def back_project(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, W, 3) camera-frame points of a depth image's pixel centres, depth along z."""
+    rows, cols = np.mgrid[0:depth_m.shape[0], 0:depth_m.shape[1]] + 0.5
+    return np.stack([(cols - K[0, 2]) / K[0, 0] * depth_m, (rows - K[1, 2]) / K[1, 1] * depth_m, depth_m], -1)
+
+
 class TSDFVolume:
     """A TSDF over the workspace plus a detection channel (a truncated *unsigned* distance of detections).
     Voxel (i, j, k) is centred at origin + (i + 0.5, j + 0.5, k + 0.5) voxel_m, the origin at (-size/2, -size/2, 0),
@@ -464,9 +470,7 @@ class TSDFVolume:
         # face seen nearly edge-on), counts half. Each pixel is split into 2 x 2 sub-pixels carrying
         # a quarter of its area, so that area lands in the right voxel even when a pixel is as large
         # as a voxel (far views).
-        H, W = depth_m.shape
-        rows, cols = np.mgrid[0:H, 0:W] + 0.5
-        points = np.stack([(cols - K[0, 2]) / K[0, 0] * depth_m, (rows - K[1, 2]) / K[1, 1] * depth_m, depth_m], -1)
+        points = back_project(depth_m, K)
         pixel_area = np.linalg.norm(np.cross(surface_derivative(points, 1), surface_derivative(points, 0)), axis=-1)
         pixel_area[pixel_area * self.seen_min_cos > (depth_m / K[0, 0]) ** 2] = 0.0
         outline = detected & ~(np.roll(detected, 1, 0) & np.roll(detected, -1, 0)
@@ -607,12 +611,8 @@ class Rig:
         by its depth, moved into the RGB camera, and the score read where it projects (0 off the image)."""
         if self.rgb is self.depth and np.array_equal(self.T_depth_rgb, np.eye(4)):
             return detections
-        H, W = depth_m.shape
-        rows, cols = np.mgrid[0:H, 0:W] + 0.5
-        K, K_rgb = self.depth.K, self.rgb.K
-        points = np.stack([(cols - K[0, 2]) / K[0, 0] * depth_m, (rows - K[1, 2]) / K[1, 1] * depth_m, depth_m], -1)
-        T_rgb_depth = np.linalg.inv(self.T_depth_rgb)
-        in_rgb = points @ T_rgb_depth[:3, :3].T + T_rgb_depth[:3, 3]
+        K_rgb, T_rgb_depth = self.rgb.K, np.linalg.inv(self.T_depth_rgb)
+        in_rgb = back_project(depth_m, self.depth.K) @ T_rgb_depth[:3, :3].T + T_rgb_depth[:3, 3]
         z = np.where(in_rgb[..., 2] > MIN_PROJECTION_Z_M, in_rgb[..., 2], np.inf)
         u = np.floor(K_rgb[0, 0] * in_rgb[..., 0] / z + K_rgb[0, 2]).astype(np.int64)
         v = np.floor(K_rgb[1, 1] * in_rgb[..., 1] / z + K_rgb[1, 2]).astype(np.int64)
@@ -2615,7 +2615,7 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
                   "each process stepping its own env:", "", f"| task / scene | 1 process | {workers} processes |",
                   "|---|---|---|"]
     with (tqdm(total=2 * 3 * repeats, desc="bench", unit="run", file=sys.stderr) as bar,
-          multiprocessing.get_context("spawn").Pool(workers) as pool):
+          process_pool(workers) as pool):
         def best(measure, key=max):
             results = []
             for _ in range(repeats):
@@ -2627,7 +2627,7 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
             means = best(lambda: bench_stages(task, steps), key=lambda ms: min(ms, key=lambda m: m["step"]))
             lines.append(f"| {task} / cubes | " + " | ".join(f"{means[stage]:.2f}" for stage in stages) + " |")
             one = best(lambda: bench_throughput(task, steps))
-            many = best(lambda: sum(pool.starmap(bench_throughput, [(task, steps, seed) for seed in range(workers)])))
+            many = best(lambda: sum(pool.map(bench_throughput, [task] * workers, [steps] * workers, range(workers))))
             throughput.append(f"| {task} / cubes | {one:.0f} | {many:.0f} |")
     return "\n".join(lines + throughput)
 
