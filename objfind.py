@@ -23,7 +23,7 @@ Read top to bottom, in the order data flows (Fig. 2: world -> images -> searcher
     ---------------- the paper's system ends; the harness follows
     files            read_checkpoint (every check in one place), atomic writes, logs, learning curves
     training runs    train: worker processes, resume, checkpoints, Ctrl-C and SIGTERM
-    evaluation       make_agent, run_episode, evaluate, wilson_interval, the Table II layout
+    evaluation       make_agent, run_episode, evaluate (each row stamped with what made it), the Table II layout
     demo, bench      run_demo (PNG + MP4), run_bench (per-stage milliseconds, steps/s)
     soak             random episodes with hostile actions: crashes, non-finite values, leaks
     command line     python objfind.py demo | eval | train | bench | soak
@@ -35,8 +35,11 @@ import copy
 import csv
 import functools
 import gc
+import hashlib
+import importlib.metadata
 import multiprocessing
 import os
+import platform
 import re
 import shlex
 import signal
@@ -76,6 +79,33 @@ finally:
 
 class UsageError(Exception):
     """Bad input (an unknown agent, a missing or foreign checkpoint): one line, exit status 2."""
+
+
+def at_least(low, high=np.inf):
+    """A field's range [low, high] as (test, meaning), for a settings class's `limits`."""
+    return lambda v: low <= v <= high, f"at least {low}" if high == np.inf else f"in [{low}, {high}]"
+
+
+def above(low, high=np.inf):
+    """A field's range (low, high] as (test, meaning)."""
+    return lambda v: low < v <= high, f"above {low}" if high == np.inf else f"in ({low}, {high}]"
+
+
+def check_fields(settings) -> None:
+    """A settings dataclass checked where it is made, so a new field is one line: its type (a whole number,
+    a truth value, numbers in a tuple), every number finite, and the field's range in `limits` if any."""
+    for field in dataclasses.fields(settings):
+        value = getattr(settings, field.name)
+        ok, meaning = settings.limits.get(field.name, settings.default_limit)
+        kind = field.type if isinstance(field.type, str) else field.type.__name__
+        values = value if kind == "tuple" and isinstance(value, tuple) else (value,)
+        number = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+        if kind == "bool" and not isinstance(value, bool):
+            raise ValueError(f"{field.name}={value!r}: it must be True or False")
+        if kind == "int" and not (isinstance(value, int) and not isinstance(value, bool)):
+            raise ValueError(f"{field.name}={value!r}: it must be a whole number")
+        if kind != "bool" and not (number and np.all(np.isfinite(values)) and ok(value)):
+            raise ValueError(f"{field.name}={value!r}: it must be {meaning}")
 
 # ================================================================================================
 # Settings: Table I presets and the constants of Sec. IV-A. Lengths in metres, angles in radians.
@@ -205,6 +235,51 @@ class Settings:
         """Surface of the nominal target, a cube of side object_size_m."""
         return 6 * self.object_size_m ** 2
 
+    default_limit: ClassVar[tuple] = (lambda v: min(np.atleast_1d(v)) >= 0, "at least 0")
+    limits: ClassVar[dict] = {   # ranges beyond "at least 0"; upper bounds keep memory and time finite
+        "min_objects": at_least(1), "max_objects": at_least(1, 500), "num_piles": at_least(0, 10),
+        "no_target_prob": at_least(0, 1), "exploration_ratio": at_least(0, 1), "workspace_m": above(0, 10),
+        "horizon": at_least(1, 100_000), "trunc_m": above(0), "voxels_per_side": at_least(8, 400),
+        "max_weight": above(0), "crop_m": above(0), "max_step_m": above(0), "max_turn_rad": above(0),
+        "noise_rate": above(0), "false_positive_share": at_least(0, 1), "gnbv_samples": at_least(1, 1000),
+        "gnbv_explored_to_stop": above(0, 1), "seen_threshold": above(0, 1),
+        "objects_per_pile_dense": (lambda v: len(v) == 2 and 1 <= v[0] <= v[1], "(low, high), 1 <= low <= high"),
+        "object_size_m": above(0), "object_mass_kg": above(0), "gripper_mass_kg": above(0),
+        "variable_scale": (lambda v: len(v) == 2 and 0 < v[0] <= v[1], "(low, high), 0 < low <= high"),
+        "image_width": at_least(8, 1024), "image_height": at_least(8, 1024), "fov_y_deg": above(0, 170),
+        "near_m": above(0), "gripper_force_n": above(0), "max_roll_rad": at_least(0, 1.5), "ceiling_ratio": above(0),
+        "gripper_start_tries": at_least(1), "reach_tol_m": above(0), "reach_tol_rad": above(0), "stall_m": above(0),
+        "physics_hz": at_least(1), "solver_iterations": at_least(1), "max_substeps": at_least(1),
+        "settle_speed": above(0), "wall_height_m": above(0), "wall_thickness_m": above(0),
+        "scatter_tries": at_least(1), "pile_layers": at_least(1, 20), "pile_spacing_ratio": above(0),
+        "pile_overlap_chance": at_least(0, 1), "exploration_normaliser": above(0),
+        "surface_points": at_least(1, 100_000), "seen_min_cos": at_least(0, 0.99), "detection_threshold": above(0, 1),
+        "outline_pixel_share": at_least(0, 1), "gnbv_rays": (lambda v: len(v) == 2 and min(v) >= 1, "(columns, rows)"),
+        "gnbv_min_detections": at_least(1), "gnbv_stall_steps": at_least(1), "ges_tries_per_node": at_least(1),
+    }
+
+    def __post_init__(self):
+        """Each field in its range, then the combinations a scene could not be built from (one line each)."""
+        check_fields(self)
+        half = self.workspace_m / 2
+        largest_m = self.object_size_m * self.variable_scale[1]
+        for name, broken, must in (
+                ("min_objects", self.min_objects > self.max_objects, f"at most max_objects ({self.max_objects})"),
+                ("num_piles", self.num_piles > self.min_objects, f"at most min_objects ({self.min_objects})"),
+                ("pile_overlap_chance", self.num_piles > 1 and self.pile_overlap_chance == 0,
+                 "above 0 with several piles (pile centres are drawn until they fit)"),
+                ("pile_margin_m", self.num_piles and self.pile_margin_m >= half, f"under half of workspace_m ({half})"),
+                ("object_size_m", largest_m > self.workspace_m / 3, "(at the largest variable_scale) at most a "
+                 f"third of workspace_m ({self.workspace_m})"),
+                ("gripper_start_margin_m", self.gripper_start_margin_m >= half, f"under half of workspace_m ({half})"),
+                ("gripper_start_min_z_m", self.gripper_start_min_z_m > self.ceiling_m,
+                 f"at most the ceiling (ceiling_ratio x workspace_m = {self.ceiling_m:g})"),
+                ("near_m", self.near_m >= self.far_m, f"under the far plane (2 x workspace_m = {self.far_m:g})"),
+                ("trunc_m", self.trunc_m >= self.volume_height_m,
+                 f"under the volume's height ({self.volume_height_m:g})")):
+            if broken:
+                raise ValueError(f"{name}={getattr(self, name)!r}: it must be {must}")
+
 
 
 TASKS = {
@@ -240,11 +315,12 @@ class PPOSettings:
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
 
+    default_limit: ClassVar[tuple] = (lambda v: True, "finite")
     limits: ClassVar[dict] = {   # a range for some fields, as (test, meaning); every field must be finite
-        "hidden": (lambda v: v >= 1, "at least 1"), "batch_steps": (lambda v: v >= 1, "at least 1"),
+        "hidden": at_least(1, 1024), "batch_steps": at_least(1, 1_000_000), "epochs": at_least(1, 1000),
         "minibatch": (lambda v: v >= 1, "at least 1"), "gamma": (lambda v: 0 < v <= 1, "in (0, 1]"),
         "entropy_coef": (lambda v: v >= 0, "at least 0"), "gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),
-        "clip": (lambda v: v > 0, "above 0"), "epochs": (lambda v: v >= 1, "at least 1"),
+        "clip": (lambda v: v > 0, "above 0"),
         "learning_rate": (lambda v: v > 0, "above 0"), "value_coef": (lambda v: v >= 0, "at least 0"),
         "max_grad_norm": (lambda v: v > 0, "above 0"), "reward_scale": (lambda v: v > 0, "above 0"),
         "init_terminate_prob": (lambda v: 0 < v < 1, "in (0, 1)"), "adam_eps": (lambda v: v > 0, "above 0"),
@@ -252,15 +328,7 @@ class PPOSettings:
     }
 
     def __post_init__(self):
-        """Check every field, so a new one is one line here: its type, finite, and its limit if any."""
-        for field in dataclasses.fields(self):
-            value = getattr(self, field.name)
-            ok, meaning = self.limits.get(field.name, (lambda v: True, "finite"))
-            number = isinstance(value, (int, float)) and not isinstance(value, bool)
-            if field.type in ("int", int) and not isinstance(value, int):
-                raise ValueError(f"{field.name}={value!r}: it must be a whole number")
-            if not (number and np.isfinite(value) and ok(value)):
-                raise ValueError(f"{field.name}={value!r}: it must be {meaning}")
+        check_fields(self)
 
 
 def ppo_settings(values: dict) -> PPOSettings:
@@ -956,6 +1024,12 @@ class ActorCritic(nn.Module):
         self.actor[-1].weight[-1].zero_()
         self.actor[-1].bias[-1] = torch.logit(torch.tensor(prob))
 
+    def sound(self) -> bool:
+        """Every weight and statistic finite, the std positive and finite: a policy that can still be sampled."""
+        std = self.log_std.exp()
+        finite = all(torch.isfinite(t).all() for t in self.state_dict().values())
+        return bool(finite and ((std > 0) & torch.isfinite(std)).all())
+
     def normalise(self, obs: torch.Tensor) -> torch.Tensor:
         return ((obs - self.obs_mean) / (self.obs_var + 1e-8).sqrt()).clamp(-self.obs_clip, self.obs_clip)
 
@@ -1591,6 +1665,7 @@ class ObjectFindingEnv(gym.Env):
     def checked_action(self, action) -> np.ndarray:
         """The action as (6,) float64 clipped to the Box, or a ValueError naming what is wrong with it;
         nothing of the env changes before the action passed, so the next good action works."""
+        self.check_open()
         if getattr(self, "episode_over", True):
             raise RuntimeError("step() needs reset() first: " + ("the episode has ended" if hasattr(self, "steps")
                                                                  else "no episode has started"))
@@ -1609,7 +1684,12 @@ class ObjectFindingEnv(gym.Env):
 
     # --- a new scene -----------------------------------------------------------------------------
 
+    def check_open(self) -> None:
+        if self.sim is None:
+            raise RuntimeError("this ObjectFindingEnv is closed: make a new one")
+
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        self.check_open()
         if seed is None and self._seed is not None:
             seed, self._seed = self._seed, None
         super().reset(seed=seed)
@@ -1776,6 +1856,8 @@ def ppo_update(model: ActorCritic, optimizer, batch: dict, ppo: PPOSettings, gen
             loss.backward()
             nn.utils.clip_grad_norm_(model.parameters(), ppo.max_grad_norm)
             optimizer.step()
+            if not (torch.isfinite(loss) and model.sound()):
+                raise FloatingPointError("a non-finite loss, weight or std")   # train stops, keeping the last update
             with torch.no_grad():
                 stats["policy_loss"].append(policy_loss.item())
                 stats["value_loss"].append(value_loss.item())
@@ -1841,6 +1923,8 @@ def ppo_iteration(model: ActorCritic, optimizer, ppo: PPOSettings, collect, seed
     # 3. the update, then the observation statistics (the update's ratios need the rollout's scale)
     stats = ppo_update(model, optimizer, flat, ppo, torch.Generator().manual_seed(derived_seed(seed, update)))
     model.update_obs_stats(flat["obs"])
+    if not model.sound():
+        raise FloatingPointError("non-finite observation statistics")
     # 4. what the log shows of the sampled policy
     mean = lambda key: float(np.mean([e[key] for e in episodes])) if episodes else float("nan")
     row = {"env_steps": n, "episodes": len(episodes), "return": mean("ret"), "success": mean("success"),
@@ -1857,7 +1941,15 @@ def ppo_iteration(model: ActorCritic, optimizer, ppo: PPOSettings, collect, seed
 # Files: checkpoints read and checked in one place, outputs written atomically, logs and curves.
 # ================================================================================================
 
-RUN_FIELDS = ("optimizer", "update", "env_steps", "wall_s", "seed")   # what a checkpoint of a run adds
+RUN_FIELDS = dict(   # what a checkpoint of a run adds (the first five always), with the check each must pass
+    optimizer=lambda v: isinstance(v, dict) and {"state", "param_groups"} <= set(v),
+    update=lambda v: isinstance(v, int) and v >= 0, env_steps=lambda v: isinstance(v, int) and v >= 0,
+    wall_s=lambda v: isinstance(v, (int, float)) and np.isfinite(v) and v >= 0,
+    seed=lambda v: isinstance(v, int) and 0 <= v <= MAX_SEED,
+    rollout_streams=lambda v: isinstance(v, int) and 1 <= v <= MAX_STREAMS,
+    task=lambda v: v in TASKS, scene=lambda v: v in SCENES)
+MAX_CHECKPOINT_BYTES = 64 * 2 ** 20   # the largest network PPOSettings allows, with Adam's state, is about 27 MB
+MAX_STREAMS = 4096                    # rollout streams of a run
 
 
 def read_checkpoint(path: Path, run: bool = False, state_size: int | None = None) -> dict:
@@ -1868,6 +1960,9 @@ def read_checkpoint(path: Path, run: bool = False, state_size: int | None = None
         raise UsageError(f"{str(path)!r} is a folder, not a checkpoint")
     if not path.is_file():
         raise UsageError(f"checkpoint {str(path)!r} not found")
+    if path.stat().st_size > MAX_CHECKPOINT_BYTES:
+        raise UsageError(f"{str(path)!r} has {path.stat().st_size / 2 ** 20:.0f} MB; an objfind checkpoint has "
+                         f"at most {MAX_CHECKPOINT_BYTES // 2 ** 20} MB")
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:   # truncated, not a torch file, or unsafe to unpickle
@@ -1878,18 +1973,29 @@ def read_checkpoint(path: Path, run: bool = False, state_size: int | None = None
     if missing:
         raise UsageError(f"{str(path)!r} is an objfind checkpoint without {', '.join(missing)}")
     try:
-        network = ActorCritic(int(checkpoint["obs_dim"]), ppo_settings(checkpoint["settings"]))
-        network.load_state_dict(checkpoint["model"])
-    except (UsageError, TypeError, ValueError, RuntimeError) as error:
-        reason = str(error).strip().splitlines()[0]
-        raise UsageError(f"{str(path)!r} does not hold this network ({reason[:200]})") from None
+        if not (isinstance(checkpoint["obs_dim"], int) and 1 <= checkpoint["obs_dim"] <= 10_000):
+            raise ValueError(f"a state of {checkpoint['obs_dim']!r} values")
+        if not isinstance(checkpoint["settings"], dict) or not isinstance(checkpoint["model"], dict):
+            raise ValueError("settings or model is not a dictionary")
+        expected = ActorCritic(checkpoint["obs_dim"], ppo_settings(checkpoint["settings"])).state_dict()
+        for name, tensor in expected.items():
+            held = checkpoint["model"].get(name)
+            if not isinstance(held, torch.Tensor) or held.shape != tensor.shape or held.dtype != tensor.dtype:
+                raise ValueError(f"{name} is {'missing' if held is None else 'of another shape or type'}")
+        if set(checkpoint["model"]) != set(expected):
+            raise ValueError(f"an unknown tensor {sorted(set(checkpoint['model']) - set(expected))[0]}")
+    except (UsageError, ValueError) as error:
+        raise UsageError(f"{str(path)!r} does not hold an objfind network: {error}") from None
     if not all(torch.isfinite(t).all() for t in checkpoint["model"].values() if t.is_floating_point()):
         raise UsageError(f"{str(path)!r} holds non-finite weights")
     if state_size is not None and checkpoint["obs_dim"] != state_size:
         raise UsageError(f"{str(path)!r} is for a {checkpoint['obs_dim']}-value state, not the {state_size} of Fig. 2")
-    missing = [k for k in RUN_FIELDS if k not in checkpoint]
+    missing = [k for k in list(RUN_FIELDS)[:5] if k not in checkpoint]
     if run and missing:
         raise UsageError(f"--resume: the checkpoint has no {', '.join(missing)}: it holds weights, not a run")
+    wrong = [k for k, ok in RUN_FIELDS.items() if run and k in checkpoint and not ok(checkpoint[k])]
+    if wrong:
+        raise UsageError(f"--resume: {str(path)!r} has an impossible {wrong[0]} ({str(checkpoint[wrong[0]])[:60]})")
     return checkpoint
 
 
@@ -1993,11 +2099,29 @@ TRAIN_LOG_FIELDS = ("update", "env_steps", "episodes", "return", "success", "epi
                     "value_loss", "entropy", "approx_kl", "clip_fraction", "wall_s")
 
 
-def read_train_log(path: Path) -> list:
-    if not path.exists():
-        return []
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+def read_train_log(path: Path, updates: int) -> list:
+    """A resumed run's log.csv up to its checkpoint's update, every row checked: one row per update from the
+    first, numbers in every column (a spreadsheet may have saved it); anything else is one line."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            if sorted(reader.fieldnames or []) != sorted(TRAIN_LOG_FIELDS):
+                raise ValueError(f"its columns are not {', '.join(TRAIN_LOG_FIELDS)}")
+            rows = []
+            for line, row in enumerate(reader, start=2):
+                if None in row or None in row.values() or not all(re.fullmatch(r"[-+.\w]+", v) for v in row.values()):
+                    raise ValueError(f"line {line} is not a row of numbers")
+                values = {k: float(v) for k, v in row.items()}
+                if values["update"] != len(rows) + 1:
+                    raise ValueError(f"line {line} is update {row['update']}, not {len(rows) + 1}")
+                rows.append({**row, "update": len(rows) + 1})
+    except FileNotFoundError:
+        rows = []
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise UsageError(f"--resume: {str(path)!r}: {error}") from None
+    if len(rows) < updates:
+        raise UsageError(f"--resume: {str(path)!r} ends at update {len(rows)}, the checkpoint at {updates}")
+    return rows[:updates]   # the tail after the checkpoint is lost work, run again
 
 
 CURVE_SIZE = (720, 480)     # width, height of a learning-curve PNG
@@ -2119,11 +2243,12 @@ def rollout_collector(make_env, env, obs_dim: int, ppo: PPOSettings, streams: in
 
 
 class TrainingInterrupted(Exception):
-    """Ctrl-C, SIGTERM or a dead worker stopped `train`; the last finished update is in the checkpoint."""
+    """Ctrl-C, SIGTERM, a dead worker or a diverged update (`cause`) stopped `train`; the last finished
+    update is in the checkpoint."""
 
-    def __init__(self, update: int, env_steps: int, path: Path, worker_died: bool = False):
+    def __init__(self, update: int, env_steps: int, path: Path, cause: str = "interrupted"):
         super().__init__(f"update {update} ({env_steps} env steps)")
-        self.update, self.env_steps, self.path, self.worker_died = update, env_steps, path, worker_died
+        self.update, self.env_steps, self.path, self.cause = update, env_steps, path, cause
 
 
 def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSettings(), workers: int = 1,
@@ -2149,9 +2274,12 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
         if resume["obs_dim"] != obs_dim:
             raise UsageError(f"--resume: the checkpoint is for a {resume['obs_dim']}-value state, not {obs_dim}")
         model.load_state_dict(resume["model"])
-        optimizer.load_state_dict(resume["optimizer"])
+        try:
+            optimizer.load_state_dict(resume["optimizer"])
+        except (ValueError, KeyError, TypeError, RuntimeError):
+            raise UsageError("--resume: the checkpoint's optimizer state does not fit its network") from None
         update, env_steps, wall_s = resume["update"], resume["env_steps"], resume["wall_s"]
-        log_rows = [r for r in read_train_log(log_path) if int(r["update"]) <= update]   # drop the lost tail
+        log_rows = read_train_log(log_path, update)
     elif init is not None:   # a fresh optimizer: Adam's moments belong to the old task
         try:
             model.load_state_dict(init["model"])
@@ -2193,14 +2321,17 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
             bar.update(min(env_steps, total_steps) - bar.n)
             bar.set_postfix(steps_per_s=f"{row['env_steps'] / (time.perf_counter() - t0):.0f}",
                             success=f"{np.mean([e['success'] for e in recent]) if recent else 0:.2f}")
-    except (KeyboardInterrupt, BrokenProcessPool) as stop:
+    except (KeyboardInterrupt, BrokenProcessPool, FloatingPointError) as stop:
         if latest is not None and latest["update"] > saved_update:
             save_checkpoint(ckpt_path, latest)
             write_csv([r for r in log_rows if int(r["update"]) <= latest["update"]], log_path, TRAIN_LOG_FIELDS)
             plot_learning_curve(log_rows, out_dir / "curve.png")
         kept = latest or resume
+        cause = (DEAD_WORKER if isinstance(stop, BrokenProcessPool) else
+                 f"training diverged in update {update + 1} ({stop})" if isinstance(stop, FloatingPointError) else
+                 "interrupted")
         raise TrainingInterrupted(kept["update"] if kept else 0, kept["env_steps"] if kept else 0, ckpt_path,
-                                  isinstance(stop, BrokenProcessPool)) from None
+                                  cause) from None
     finally:
         bar.close()
         if handles_sigterm:
@@ -2244,6 +2375,30 @@ def learned_policy(agent: str, task: str, weights: Path | None = None) -> dict:
     only the policy (no optimizer state) travels on to worker processes."""
     checkpoint = read_checkpoint(Path(weights or default_weights(agent, task)), state_size=STATE_SIZE)
     return {k: checkpoint[k] for k in ("model", "settings", "obs_dim")}
+
+
+def policy_fingerprint(policy: dict | None) -> str:
+    """What a learned agent plays, as 12 hex digits of its weights' SHA-256 (the same in any file); "none"."""
+    if policy is None:
+        return "none"
+    digest = hashlib.sha256()
+    for name in sorted(policy["model"]):
+        digest.update(name.encode() + policy["model"][name].numpy().tobytes())
+    return digest.hexdigest()[:12]
+
+
+def package_versions() -> str:
+    """The packages an episode depends on: a cell is exact only under the same versions (README)."""
+    return (f"python={platform.python_version()} numpy={np.__version__} "
+            f"pybullet={importlib.metadata.version('pybullet')} torch={torch.__version__} "
+            f"gymnasium={gym.__version__} opencv={cv2.__version__}")
+
+
+def cell_origin(agent: str, task: str, scene: str, policy: dict | None, overrides: dict | None) -> dict:
+    """What made a cell's episodes, stamped on each of its CSV rows: a table refuses a cell made otherwise."""
+    size_known = (overrides or {}).get("target_size_known", TASKS[task].target_size_known)
+    return dict(agent=agent, task=task, scene=scene, weights=policy_fingerprint(policy),
+                target_size_known=size_known, versions=package_versions())
 
 
 def make_agent(name: str, cfg: Settings, seed: int, policy: dict | None = None):
@@ -2301,16 +2456,18 @@ EVAL_CHUNK = 5   # episodes per job of a worker process: small jobs keep all wor
 def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 0, workers: int = 1,
              progress: bool = True, policy: dict | None = None, overrides: dict | None = None) -> list:
     """Paired episodes: episode i is scene seed + i for every agent, in worlds with these Settings
-    overrides (an ablation). A learned agent plays `policy`, or its shipped weights. Rows in seed order."""
+    overrides (an ablation). A learned agent plays `policy`, or its shipped weights. Rows in seed order,
+    each with the cell's origin."""
     if agent_name in LEARNED and policy is None:
         policy = learned_policy(agent_name, task)
+    origin = cell_origin(agent_name, task, scene, policy, overrides)
     seeds = list(range(seed, seed + episodes))
     jobs = [(agent_name, task, scene, seeds[i:i + EVAL_CHUNK], policy, overrides)
             for i in range(0, episodes, EVAL_CHUNK)]
     with tqdm(total=episodes, desc=f"{agent_name} {task}/{scene}", unit="ep", disable=not progress,
               file=sys.stderr) as bar:
         parts = run_jobs(evaluate_chunk, jobs, workers, lambda part: bar.update(len(part)))
-    return sorted((row for part in parts for row in part), key=lambda r: r["seed"])
+    return sorted(({**row, **origin} for part in parts for row in part), key=lambda r: r["seed"])
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -2340,7 +2497,9 @@ def summarise(rows: list) -> dict:
 
 
 EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fraction", "explored_fraction",
-                  "decision_ms")   # the columns of an evaluation CSV, one row per episode
+                  "decision_ms")   # the columns of an evaluation CSV, one row per episode ...
+ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "versions")   # ... and what made it
+CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
 
 
 def parse_bool(text: str) -> bool:
@@ -2350,37 +2509,84 @@ def parse_bool(text: str) -> bool:
     return text.strip().lower() in ("true", "1")
 
 
+def one_of(choices):
+    """A CSV column's parser that accepts only these names."""
+    def parse(text: str) -> str:
+        if text not in choices:
+            raise ValueError(f"{text!r} is not one of {', '.join(choices)}")
+        return text
+    return parse
+
+
+def fraction(text: str) -> float:
+    value = float(text)
+    if not 0 <= value <= 1:
+        raise ValueError(f"{text} is not a fraction in [0, 1]")
+    return value
+
+
+EPISODE_COLUMNS = dict(seed=int, target_present=parse_bool, success=parse_bool, steps=int,
+                       target_seen_fraction=fraction, explored_fraction=fraction, decision_ms=float,
+                       agent=one_of(list(BASELINES) + list(LEARNED)), task=one_of(list(TASKS)), scene=one_of(SCENES),
+                       weights=str, target_size_known=parse_bool, versions=str)
+
+
+def checked_episode(row: dict, first: dict | None) -> dict:
+    """One CSV row parsed by its columns' names and checked against what an episode can be."""
+    if None in row or None in row.values():
+        raise ValueError("it has a different number of fields than the header")
+    row = {k: EPISODE_COLUMNS[k](v) for k, v in row.items()}
+    if not 1 <= row["steps"] <= TASKS[row["task"]].horizon:
+        raise ValueError(f"{row['steps']} steps: an episode of {row['task']} has 1 to {TASKS[row['task']].horizon}")
+    if row["decision_ms"] < 0 or not np.isfinite(row["decision_ms"]) or row["seed"] < 0:
+        raise ValueError("a negative seed or decision time")
+    if not row["target_present"] and row["target_seen_fraction"] > 0:
+        raise ValueError("a target seen in a scene without one")
+    if first and any(row[k] != first[k] for k in ORIGIN_FIELDS):
+        raise ValueError("its origin (agent, task, scene, weights, rule, versions) differs from line 2's")
+    return row
+
+
 def read_episodes(path: Path) -> list:
-    """The rows of an evaluation CSV, each column parsed by its name; any row that does not parse is a
-    one-line UsageError naming the file and the row. Never a plausible wrong number."""
-    kinds = dict(seed=int, target_present=parse_bool, success=parse_bool, steps=int, target_seen_fraction=float,
-                 explored_fraction=float, decision_ms=float)
+    """The rows of an evaluation CSV, each checked (`checked_episode`), seeds distinct; anything wrong is a
+    one-line UsageError naming the file and the line. Never a plausible wrong number."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:   # a spreadsheet may add a byte-order mark
             reader = csv.DictReader(f)
             header = reader.fieldnames or []
-            if sorted(header) != sorted(EPISODE_FIELDS):
-                raise UsageError(f"{str(path)} has columns {', '.join(header) or '(none)'}, not "
-                                 f"{', '.join(EPISODE_FIELDS)}")
-            rows = []
+            if sorted(header) != sorted(EPISODE_FIELDS + ORIGIN_FIELDS):
+                raise UsageError(f"{str(path)} has columns {', '.join(header) or '(none)'}, not those of an "
+                                 f"evaluation CSV: {', '.join(EPISODE_FIELDS + ORIGIN_FIELDS)}")
+            rows, lines = [], {}
             for line, row in enumerate(reader, start=2):
                 try:
-                    if None in row or None in row.values():
-                        raise ValueError("it has a different number of fields than the header")
-                    rows.append({k: kinds[k](v) for k, v in row.items()})
-                except ValueError as error:
+                    rows.append(checked_episode(row, rows[0] if rows else None))
+                    if rows[-1]["seed"] in lines:
+                        raise ValueError(f"seed {rows[-1]['seed']} is also on line {lines[rows[-1]['seed']]}")
+                    lines[rows[-1]["seed"]] = line
+                except (ValueError, KeyError) as error:
                     raise UsageError(f"{str(path)}, line {line}: {error}") from None
     except (OSError, UnicodeDecodeError) as error:
         raise UsageError(f"cannot read {str(path)!r} ({error.__class__.__name__})") from None
     return rows
 
 
-def stored_cell(path: Path, seeds: list) -> list | None:
-    """The rows of a finished cell: None if no CSV is there yet, its rows if they are exactly these
-    seeds. A CSV of other seeds or episode counts is another experiment: refused, never overwritten."""
+def stored_cell(path: Path, seeds: list, origin: dict) -> list | None:
+    """The rows of a finished cell: None if no CSV is there yet, its rows if they are exactly these seeds
+    made by this origin. A CSV of other seeds, or made by another agent, task, scene, weights or rule, is
+    another experiment: refused, never overwritten."""
     if not path.exists():
         return None
+    if path.is_dir():
+        raise UsageError(f"{str(path)!r} is a folder, not a CSV")
     rows = read_episodes(path)
+    made = {k: rows[0][k] for k in CELL_IDENTITY} if rows else {}
+    want = {k: origin[k] for k in CELL_IDENTITY}
+    if rows and made != want:
+        describe = lambda o: (f"{o['agent']} on {o['task']}/{o['scene']} (weights {o['weights']}, target size "
+                              f"{'known' if o['target_size_known'] else 'unknown'})")
+        raise UsageError(f"{str(path)} was made by {describe(made)}, not {describe(want)}: "
+                         "pass another --out, or delete that file to replace it")
     have = [r["seed"] for r in rows]
     if have != list(seeds):
         described = f"{len(have)} episodes from seed {have[0]}" if have else "no episodes"
@@ -2389,7 +2595,7 @@ def stored_cell(path: Path, seeds: list) -> list | None:
     return rows
 
 
-def table_markdown(cells: dict, episodes: int) -> str:
+def table_markdown(cells: dict, episodes: int, versions: set) -> str:
     """Table II: ours ("success / steps") beside the paper's, per agent and scene kind, and the share of
     no-target scenes each agent ended correctly (pooled over its cells; the paper gives it in the text)."""
     columns = [("ap", "cubes"), ("ap-large", "cubes")] + [("ap", scene) for scene in SCENES[1:]]
@@ -2413,7 +2619,8 @@ def table_markdown(cells: dict, episodes: int) -> str:
         paper.append(f"{PAPER_NO_TARGET[agent]:.1f}" if agent in PAPER_NO_TARGET else "-")
         lines.append(f"| {agent.upper()} (ours) | " + " | ".join(ours) + " |")
         lines.append(f"| {agent.upper()} (paper) | " + " | ".join(paper) + " |")
-    return "\n".join(lines)
+    made = "; ".join(sorted(versions)) if len(versions) < 2 else "mixed: " + " | ".join(sorted(versions))
+    return "\n".join(lines + ["", f"Made with {made}."])
 
 
 # ================================================================================================
@@ -2637,15 +2844,33 @@ def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
 # ================================================================================================
 
 SOAK_HOSTILE = (np.nan, np.inf, -np.inf, 1e9, -1e9)   # mixed into random actions; the first three are refused
+SOAK_MALFORMED = (np.zeros(ACTION_SIZE - 1), np.zeros((2, ACTION_SIZE)), "forward", None, [0.0] * 7)   # refused
 SOAK_TERMINATE_PROB = 0.05                             # about 20 steps per soak episode
-SOAK_HOSTILE_PROB = 0.1                                # share of actions with one hostile component
+SOAK_HOSTILE_PROB = 0.1                                # share of actions with one hostile component ...
+SOAK_MALFORMED_PROB = 0.03                             # ... malformed as a whole, or as a list of Python floats
+SOAK_RESET_PROB = 0.02                                 # a reset in the middle of an episode, with a large seed
 SOAK_COUNTS = dict(episodes=0, steps=0, refused=0, crashes=0, non_finite=0, leaked=0, first_crash="")
 
 
+def hostile_action(rng: np.random.Generator):
+    """A random action, sometimes with a non-finite or huge component, malformed, or a plain list; and
+    whether the env must refuse it (ValueError)."""
+    action = rng.uniform(-1, 1, ACTION_SIZE)
+    action[ACTION_MOVES] = 1.0 if rng.random() < SOAK_TERMINATE_PROB else -1.0
+    if rng.random() < SOAK_HOSTILE_PROB:
+        action[rng.integers(ACTION_SIZE)] = SOAK_HOSTILE[rng.integers(len(SOAK_HOSTILE))]
+    draw = rng.random()
+    if draw < SOAK_MALFORMED_PROB:
+        return SOAK_MALFORMED[rng.integers(len(SOAK_MALFORMED))], True
+    if draw < 2 * SOAK_MALFORMED_PROB:
+        action = action.tolist()
+    return action, not np.all(np.isfinite(action))
+
+
 def soak_chunk(task: str, scene: str, seeds: list) -> dict:
-    """Episodes of random actions, a fresh env each, every other one dropped without close(). Counts
-    crashes (any error but a refused non-finite action), non-finite observations or rewards, and
-    pybullet connections still open once the envs are gone."""
+    """Episodes of hostile actions (`hostile_action`), resets mid-episode and steps after the end, a fresh
+    env each, every other one dropped without close(). Counts crashes (any error but a refusal the env
+    owes), non-finite observations or rewards, and pybullet connections still open once the envs are gone."""
     counts, clients = dict(SOAK_COUNTS), []
     for seed in seeds:
         rng = np.random.default_rng(seed)
@@ -2656,19 +2881,24 @@ def soak_chunk(task: str, scene: str, seeds: list) -> dict:
             counts["non_finite"] += int(not np.all(np.isfinite(obs)))
             done = False
             while not done:
-                action = rng.uniform(-1, 1, ACTION_SIZE)
-                action[ACTION_MOVES] = 1.0 if rng.random() < SOAK_TERMINATE_PROB else -1.0
-                if rng.random() < SOAK_HOSTILE_PROB:
-                    action[rng.integers(ACTION_SIZE)] = SOAK_HOSTILE[rng.integers(len(SOAK_HOSTILE))]
+                if rng.random() < SOAK_RESET_PROB:
+                    obs, _ = env.reset(seed=int(rng.integers(MAX_SEED)))
+                    counts["non_finite"] += int(not np.all(np.isfinite(obs)))
+                action, refusable = hostile_action(rng)
                 try:
                     obs, reward, done, _, _ = env.step(action)
                 except ValueError:
-                    if np.all(np.isfinite(action)):
+                    if not refusable:
                         raise
                     counts["refused"] += 1
                     continue
                 counts["steps"] += 1
                 counts["non_finite"] += int(not (np.all(np.isfinite(obs)) and np.isfinite(reward)))
+            try:
+                env.step(np.zeros(ACTION_SIZE))   # after the end: refused, the episode stays over
+                raise AssertionError("a step after the episode ended was accepted")
+            except RuntimeError:
+                counts["refused"] += 1
             counts["episodes"] += 1
         except Exception as error:   # noqa: BLE001  counted, not raised: a soak reports every kind of failure
             counts["crashes"] += 1
@@ -2682,10 +2912,10 @@ def soak_chunk(task: str, scene: str, seeds: list) -> dict:
 
 
 def run_soak(episodes: int, workers: int, seed: int = 0, progress: bool = True) -> dict:
-    """`episodes` soak episodes spread over both tasks and all five scene kinds; the summed counts."""
-    kinds = [(task, scene) for task in ("ap", "ip") for scene in SCENES]
+    """`episodes` soak episodes spread over every task and scene kind; the summed counts."""
+    kinds = [(task, scene) for task in TASKS for scene in SCENES]
     seeds = list(range(seed, seed + episodes))
-    per_kind = [seeds[j::len(kinds)] for j in range(len(kinds))]          # episode i: kind i mod 10
+    per_kind = [seeds[j::len(kinds)] for j in range(len(kinds))]          # episode i: kind i mod len(kinds)
     jobs = [(*kind, part[i:i + EVAL_CHUNK]) for kind, part in zip(kinds, per_kind)
             for i in range(0, len(part), EVAL_CHUNK)]
     total = dict(SOAK_COUNTS)
@@ -2709,20 +2939,29 @@ class ArgumentParser(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def whole_number_arg(minimum: int):
-    """An argparse type: an integer of at least `minimum` (0 for seeds, 1 for counts)."""
+MAX_SEED = 2 ** 32 - 1          # seeds torch and numpy alike; a scene's seed is seed + episode index
+MAX_EPISODES = 1_000_000        # seed lists and jobs are made up front
+MAX_WORKERS = 4 * (os.cpu_count() or 1)   # more processes only add memory (about 250 MB each)
+MAX_STEPS = 10 ** 10            # train's --steps, bench's steps per measurement
+
+
+def whole_number_arg(minimum: int, maximum: int, meaning: str):
+    """An argparse type: an integer in [minimum, maximum], or one line saying what the flag is."""
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"{text!r} must be {'positive' if minimum else 'at least 0'}")
+        if not minimum <= value <= maximum:
+            raise argparse.ArgumentTypeError(f"{text!r}: {meaning} must be in [{minimum}, {maximum}]")
         return value
     return parse
 
 
-count_arg, positive_arg = whole_number_arg(0), whole_number_arg(1)
+seed_arg = whole_number_arg(0, MAX_SEED, "a seed")
+episodes_arg = whole_number_arg(1, MAX_EPISODES, "the number of episodes")
+workers_arg = whole_number_arg(1, MAX_WORKERS, "the number of worker processes (at most 4 per core)")
+steps_arg = whole_number_arg(1, MAX_STEPS, "the number of steps")
 
 
 def ppo_setting_arg(text: str) -> tuple[str, float]:
@@ -2760,6 +2999,7 @@ def agent_policy(args) -> dict | None:
 
 def cmd_demo(args) -> int:
     args.task = args.task or ("ip" if args.agent in INTERACTIVE_AGENTS else "ap")
+    args.scene = args.scene or "cubes"
     policy, out = agent_policy(args), writable_folder(Path(args.out))
     png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, out, policy)
     outcome = "success" if info["success"] else "failure"
@@ -2769,70 +3009,79 @@ def cmd_demo(args) -> int:
     return 0
 
 
-def print_summary(agent: str, task: str, scene: str, cell: dict) -> None:
+def print_summary(agent: str, task: str, scene: str, cell: dict, wall_s: float) -> None:
     fmt = lambda value, spec: "-" if np.isnan(value) else format(value, spec)   # a kind of scene not drawn
     print(f"{agent} on {task}/{scene}, {cell['episodes']} episodes: success {cell['success']:.1f} % "
           f"[{cell['success_lo']:.1f}, {cell['success_hi']:.1f}], steps {cell['steps']:.2f} +- "
           f"{cell['steps_half']:.2f} ({fmt(cell['steps_with_target'], '.2f')} with a target), "
           f"no-target success {fmt(cell['no_target_success'], '.1f')} % of {cell['no_target_episodes']}, "
-          f"decision {cell['decision_ms']:.2f} ms/step")
+          f"decision {cell['decision_ms']:.2f} ms/step; {wall_s:.0f} s")
 
 
 def eval_table(args) -> int:
-    """Every cell of Table II. A cell whose CSV in --out holds exactly these episodes is read back, so an
-    interrupted table loses nothing; a CSV of another experiment (other seeds or episode count) is
-    refused before any episode runs, never overwritten. table2.md is written only for a whole table."""
-    if args.agent or args.weights:
-        raise UsageError("--table runs every agent with its shipped weights: drop --agent and --weights")
+    """Every cell of Table II. A cell whose CSV in --out holds exactly these episodes, made by this agent,
+    weights and rule, is read back, so an interrupted table loses nothing; any other CSV there is refused
+    before an episode runs, never overwritten. table2.md is written only for a whole table."""
+    given = [flag for flag in ("agent", "weights", "task", "scene") if getattr(args, flag)]
+    if given:
+        raise UsageError(f"--table runs every cell of Table II with the shipped weights: drop --{given[0]}")
     out = writable_folder(Path(args.out or "results"))
     seeds = list(range(args.seed, args.seed + args.episodes))
     suffix = "-size-unknown" if information_rule(args) else ""   # the ablation's files sit beside
-    cells_of_table = [(agent, task, scene) for (agent, task), scenes in PAPER_TABLE_II.items() for scene in scenes]
-    stored = {cell: stored_cell(out / f"{'-'.join(cell)}{suffix}.csv", seeds) for cell in cells_of_table}
-    cells, policies = {}, {}
+    policies = {key: learned_policy(*key) for key in PAPER_TABLE_II if key[0] in LEARNED}   # each read once
+    origins = {(agent, task, scene): cell_origin(agent, task, scene, policies.get((agent, task)),
+                                                 information_rule(args))
+               for (agent, task), scenes in PAPER_TABLE_II.items() for scene in scenes}
+    stored = {cell: stored_cell(out / f"{'-'.join(cell)}{suffix}.csv", seeds, origins[cell]) for cell in origins}
+    cells, versions, t_table = {}, set(), time.perf_counter()
     for (agent, task, scene), rows in stored.items():
-        csv_path = out / f"{agent}-{task}-{scene}{suffix}.csv"
-        try:
-            if rows is None and args.from_csv:
-                raise UsageError(f"not run yet: no {csv_path}")
-            if rows is None and agent in LEARNED and (agent, task) not in policies:   # each read once
-                policies[agent, task] = learned_policy(agent, task)
-        except UsageError as error:       # the cell is missing; the others go on
-            print(f"{agent} on {task}/{scene}: - ({error})")
+        csv_path, t_cell = out / f"{agent}-{task}-{scene}{suffix}.csv", time.perf_counter()
+        if rows is None and args.from_csv:   # the cell is missing; the others go on
+            print(f"{agent} on {task}/{scene}: - (not run yet: no {csv_path})")
             continue
         if rows is None:
             rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers,
                             policy=policies.get((agent, task)), overrides=information_rule(args))
             write_csv(rows, csv_path)
         cells[(agent, task, scene)] = summarise(rows)
-        print_summary(agent, task, scene, cells[(agent, task, scene)])
-    markdown, table = table_markdown(cells, args.episodes), out / f"table2{suffix}.md"
+        versions.add(rows[0]["versions"])
+        print_summary(agent, task, scene, cells[(agent, task, scene)], time.perf_counter() - t_cell)
+    markdown, table = table_markdown(cells, args.episodes, versions), out / f"table2{suffix}.md"
     if len(cells) == len(stored):      # written before it is printed: a closed output loses nothing
         replace_atomically(table, lambda tmp: tmp.write_text(markdown + "\n"))
     print(markdown)
     print(f"wrote {table} and one CSV per cell in {out}" if len(cells) == len(stored) else
           f"{len(stored) - len(cells)} of {len(stored)} cells missing: {table} not written; the {len(cells)} "
           f"finished cells are in {out}")
+    print(f"table: {time.perf_counter() - t_table:.0f} s")
     return 0
 
 
 def cmd_eval(args) -> int:
+    """One cell: its episodes, their summary and, with --out, their CSV, which never replaces the CSV of
+    another experiment (a table's cell, another agent's, other seeds): the same checks as --table's."""
     if args.table:
         return eval_table(args)
     if args.agent is None:
         raise UsageError("eval needs --agent or --table")
+    if args.from_csv:
+        raise UsageError("--from-csv reads the cells of --table; a plain eval runs its episodes")
     args.task = args.task or ("ip" if args.agent in INTERACTIVE_AGENTS else "ap")
+    args.scene = args.scene or "cubes"
+    policy = agent_policy(args)
     csv_path = Path(args.out) if args.out else None
     if csv_path is not None:           # a file, in a folder this run can write and has locked
         if csv_path.is_dir():
             raise UsageError(f"{str(csv_path)!r} is a folder, not a file")
         writable_folder(csv_path.parent)
-    policy = agent_policy(args)
+        origin = cell_origin(args.agent, args.task, args.scene, policy, information_rule(args))
+        stored_cell(csv_path, list(range(args.seed, args.seed + args.episodes)), origin)
+    t0 = time.perf_counter()
     rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, policy=policy,
                     overrides=information_rule(args))
     if csv_path:
         write_csv(rows, csv_path)      # before anything is printed: a closed output loses nothing
-    print_summary(args.agent, args.task, args.scene, summarise(rows))
+    print_summary(args.agent, args.task, args.scene, summarise(rows), time.perf_counter() - t0)
     if csv_path:
         print(f"wrote {csv_path}")
     return 0
@@ -2841,8 +3090,9 @@ def cmd_eval(args) -> int:
 def cmd_train(args) -> int:
     run = None
     if args.resume:
-        if args.set or args.init or args.fresh_terminate:
-            raise UsageError("--set, --init and --fresh-terminate start a new run; a resumed run keeps its own")
+        if args.set or args.init or args.fresh_terminate or args.seed is not None:
+            raise UsageError("--set, --seed, --init and --fresh-terminate start a new run; a resumed run keeps "
+                             "its own")
         out = Path(args.out or Path("runs") / f"{args.task or 'ap'}-{args.scene or 'cubes'}")
         if not (out / "checkpoint.pt").exists():
             raise UsageError(f"--resume: no checkpoint in {str(out)!r}")
@@ -2870,12 +3120,15 @@ def cmd_train(args) -> int:
               f"--workers {args.workers}")
     try:
         result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
-                       ppo_settings(dict(args.set or [])), workers=args.workers, seed=args.seed,
+                       ppo_settings(dict(args.set or [])), workers=args.workers, seed=args.seed or 0,
                        resume=run, meta=meta, init=init, fresh_terminate=args.fresh_terminate)
     except TrainingInterrupted as stop:
-        kept = f"kept {stop} in {stop.path}; resume with: {resume}" if stop.update else "nothing was kept"
-        sys.stderr.write(f"objfind: {DEAD_WORKER if stop.worker_died else 'interrupted'}; {kept}\n")
-        return 2 if stop.worker_died else 130
+        diverged = stop.cause.startswith("training diverged")
+        kept = f"kept {stop} in {stop.path}" if stop.update else "nothing was kept"
+        then = ("; a smaller learning_rate or reward_scale (--set) in a new run may help" if diverged else
+                f"; resume with: {resume}" if stop.update else "")
+        sys.stderr.write(f"objfind: {stop.cause}; {kept}{then}\n")
+        return 130 if stop.cause == "interrupted" else 2
     print(f"trained {result['env_steps']} env steps in {result['update']} updates; "
           f"wrote {out / 'checkpoint.pt'}, {out / 'log.csv'} and {out / 'curve.png'}")
     return 0
@@ -2889,8 +3142,8 @@ def cmd_bench(args) -> int:
 def cmd_soak(args) -> int:
     t0 = time.perf_counter()
     counts = run_soak(args.episodes, args.workers, args.seed)
-    print(f"soak: {counts['episodes']} episodes, {counts['steps']} steps over ap and ip x {len(SCENES)} scene "
-          f"kinds in {time.perf_counter() - t0:.0f} s; {counts['refused']} non-finite actions refused; crashes "
+    print(f"soak: {counts['episodes']} episodes, {counts['steps']} steps over {len(TASKS)} tasks x {len(SCENES)} scene "
+          f"kinds in {time.perf_counter() - t0:.0f} s; {counts['refused']} hostile actions refused; crashes "
           f"{counts['crashes']}, non-finite observations or rewards {counts['non_finite']}, leaked connections "
           f"{counts['leaked']}")
     if counts["first_crash"]:
@@ -2904,7 +3157,7 @@ def add_agent_args(command, default_agent: str | None) -> None:
                          help="random, scripted, the baselines gnbv and ges, or the learned a3de and i3de")
     command.add_argument("--task", choices=list(TASKS), help="Table I preset: ap (active), ap-large, ip "
                          "(interactive, piles); default ip for ges and i3de, ap otherwise")
-    command.add_argument("--scene", choices=SCENES, default="cubes", help="scene kind (default cubes)")
+    command.add_argument("--scene", choices=SCENES, help="scene kind (default cubes)")
     command.add_argument("--weights", help="a learned agent's checkpoint (default: weights/AGENT.pt, "
                          "AGENT-large.pt on ap-large)")
 
@@ -2915,7 +3168,7 @@ def build_parser() -> ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     demo = commands.add_parser("demo", help="one episode to a PNG contact sheet and an MP4")
     add_agent_args(demo, "a3de")
-    demo.add_argument("--seed", type=count_arg, default=0, help="the scene's seed (default 0)")
+    demo.add_argument("--seed", type=seed_arg, default=0, help="the scene's seed (default 0)")
     demo.add_argument("--out", default="out", help="output folder for demo-TASK-SCENE-AGENT.png and .mp4 "
                       "(default out; its parent must exist)")
     demo.set_defaults(func=cmd_demo)
@@ -2924,13 +3177,13 @@ def build_parser() -> ArgumentParser:
                           help="ap trains A3DE, ip trains I3DE (default ap; with --resume, the run's own)")
     training.add_argument("--scene", choices=SCENES,
                           help="scene kind to train on (default cubes; with --resume, the run's own)")
-    training.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1,
+    training.add_argument("--workers", type=workers_arg, default=os.cpu_count() or 1,
                           help="env worker processes (default all cores). A new run splits each batch into "
                                "this many rollout streams; a resumed run keeps its streams and repeats exactly "
                                "with any worker count")
-    training.add_argument("--steps", type=positive_arg, default=2_000_000,
+    training.add_argument("--steps", type=steps_arg, default=2_000_000,
                           help="env steps in all, counting those of a resumed run (default 2000000)")
-    training.add_argument("--seed", type=count_arg, default=0,
+    training.add_argument("--seed", type=seed_arg,
                           help="seeds the network, and each update's env resets and samples (default 0)")
     training.add_argument("--out", help="run folder: checkpoint.pt, log.csv, curve.png (default runs/TASK-SCENE)")
     training.add_argument("--resume", action="store_true",
@@ -2946,10 +3199,10 @@ def build_parser() -> ArgumentParser:
     evaluation.add_argument("--table", action="store_true",
                             help="every cell of Table II beside the paper: one CSV per cell in --out and "
                                  "table2.md; a cell whose CSV holds these seeds is read back, not run again")
-    evaluation.add_argument("--episodes", type=positive_arg, default=100, help="episodes per cell (default 100)")
-    evaluation.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1,
+    evaluation.add_argument("--episodes", type=episodes_arg, default=100, help="episodes per cell (default 100)")
+    evaluation.add_argument("--workers", type=workers_arg, default=os.cpu_count() or 1,
                             help="worker processes (default all cores); results do not depend on it")
-    evaluation.add_argument("--seed", type=count_arg, default=0,
+    evaluation.add_argument("--seed", type=seed_arg, default=0,
                             help="episode i uses scene seed + i for every agent, so agents meet the same scenes")
     evaluation.add_argument("--from-csv", action="store_true",
                             help="with --table: only read cells already run, print '-' for the others")
@@ -2959,22 +3212,27 @@ def build_parser() -> ArgumentParser:
     evaluation.add_argument("--out", help="CSV of every episode (with --table: a folder, default results)")
     evaluation.set_defaults(func=cmd_eval)
     bench = commands.add_parser("bench", help="per-stage step time and env steps/s")
-    bench.add_argument("--steps", type=positive_arg, default=300, help="steps per measurement")
-    bench.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1,
+    bench.add_argument("--steps", type=steps_arg, default=300, help="steps per measurement")
+    bench.add_argument("--workers", type=workers_arg, default=os.cpu_count() or 1,
                        help="processes for the throughput rows (default all cores)")
-    bench.add_argument("--repeats", type=positive_arg, default=3, help="report the best of this many runs")
+    bench.add_argument("--repeats", type=whole_number_arg(1, 100, "repeats"), default=3,
+                       help="report the best of this many runs")
     bench.set_defaults(func=cmd_bench)
-    soak = commands.add_parser("soak", help="random episodes with NaN, infinite and extreme actions; counts "
-                                            "crashes, non-finite observations and leaked connections")
-    soak.add_argument("--episodes", type=positive_arg, default=2000, help="episodes in all (default 2000)")
-    soak.add_argument("--workers", type=positive_arg, default=os.cpu_count() or 1, help="worker processes")
-    soak.add_argument("--seed", type=count_arg, default=0, help="episode i uses seed + i (default 0)")
+    soak = commands.add_parser("soak", help="random episodes with hostile actions (NaN, infinite, huge, malformed), "
+                                            "resets mid-episode and steps after the end, on every task and scene "
+                                            "kind; counts crashes, non-finite observations and leaked connections")
+    soak.add_argument("--episodes", type=episodes_arg, default=2000, help="episodes in all (default 2000)")
+    soak.add_argument("--workers", type=workers_arg, default=os.cpu_count() or 1, help="worker processes")
+    soak.add_argument("--seed", type=seed_arg, default=0, help="episode i uses seed + i (default 0)")
     soak.set_defaults(func=cmd_soak)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "episodes", None) and args.seed + args.episodes - 1 > MAX_SEED:
+        parser.error(f"--seed {args.seed} with --episodes {args.episodes} goes past the largest seed, {MAX_SEED}")
     try:
         return args.func(args)
     except UsageError as error:

@@ -724,13 +724,18 @@ def test_eval_bad_agent_or_checkpoint_is_one_line_and_exit_two(tmp_path):
 
 
 def test_eval_csv_round_trips_for_resumed_tables(tmp_path):
+    origin = of.cell_origin("gnbv", "ap", "cubes", None, None)
     rows = [dict(seed=3, target_present=True, success=False, steps=7, target_seen_fraction=0.1,
-                 explored_fraction=0.5, decision_ms=1.5)]
+                 explored_fraction=0.5, decision_ms=1.5, **origin)]
     path = tmp_path / "cell.csv"
     of.write_csv(rows, path)
-    assert of.stored_cell(path, [3]) == rows and of.stored_cell(tmp_path / "none.csv", [3]) is None
+    assert of.stored_cell(path, [3], origin) == rows and of.stored_cell(tmp_path / "none.csv", [3], origin) is None
     with pytest.raises(of.UsageError, match="holds 1 episodes from seed 3, not 1 from seed 4"):
-        of.stored_cell(path, [4])                       # another experiment's cell: refused, never replaced
+        of.stored_cell(path, [4], origin)               # another experiment's cell: refused, never replaced
+    ablation = of.cell_origin("gnbv", "ap", "cubes", None, dict(target_size_known=False))
+    with pytest.raises(of.UsageError, match="made by gnbv on ap/cubes .weights none, target size known., not "
+                                            "gnbv on ap/cubes .weights none, target size unknown"):
+        of.stored_cell(path, [3], ablation)
 
 
 def test_table_two_pools_the_no_target_scenes_of_each_agent():
@@ -739,7 +744,8 @@ def test_table_two_pools_the_no_target_scenes_of_each_agent():
         return found + [dict(target_present=False, success=ok, steps=9, decision_ms=1.0) for ok in absent_successes]
     cells = {("i3de", "ip", "cubes"): of.summarise(rows([True, False], [True] * 4)),
              ("i3de", "ip", "object-models"): of.summarise(rows([True] * 2, [True, False, False, False]))}
-    table = of.table_markdown(cells, 6).splitlines()
+    table = of.table_markdown(cells, 6, {"numpy=1"}).splitlines()
+    assert table[-1] == "Made with numpy=1."
     i3de = next(line for line in table if line.startswith("| I3DE (ours)"))
     assert i3de.split(" | ")[1:] == ["83.3 / 7.67", "-", "-", "-", "-", "50.0 / 7.67", "62.5 of 8 |"]
     paper = next(line for line in table if line.startswith("| I3DE (paper)"))
@@ -881,7 +887,7 @@ def test_ppo_improves_the_return_of_a_tiny_reach_task(tmp_path):
     returns = [float(r["return"]) for r in result["log"]]
     assert np.mean(returns[-5:]) > np.mean(returns[:3]) + 0.5, returns
     assert (tmp_path / "checkpoint.pt").exists() and (tmp_path / "curve.png").exists()
-    assert len(of.read_train_log(tmp_path / "log.csv")) == 25
+    assert len(of.read_train_log(tmp_path / "log.csv", 25)) == 25
 
 
 def test_a_warm_start_begins_from_the_trained_policy(tmp_path):
@@ -1094,9 +1100,7 @@ def no_episodes(monkeypatch):
 def test_a_table_of_other_episodes_leaves_the_stored_cells_byte_identical(tmp_path, capsys, monkeypatch):
     out = tmp_path / "results"
     out.mkdir()
-    rows = [dict(seed=i, target_present=True, success=True, steps=5, target_seen_fraction=0.3,
-                 explored_fraction=0.5, decision_ms=1.0) for i in range(30)]
-    of.write_csv(rows, out / "gnbv-ap-cubes.csv")
+    of.write_csv(fake_rows(0, 30), out / "gnbv-ap-cubes.csv")
     (out / "table2.md").write_text("the stored table\n")
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     no_episodes(monkeypatch)
@@ -1117,26 +1121,53 @@ def cell_csv(path: Path, header: str, lines: list) -> Path:
 
 def test_episode_csvs_are_read_strictly(tmp_path, capsys, monkeypatch):
     fields = "seed,target_present,success,steps,target_seen_fraction,explored_fraction,decision_ms"
+    fields += ",agent,task,scene,weights,target_size_known,versions"
+    made = ",gnbv,ap,cubes,none,True," + of.package_versions()
     # a spreadsheet's TRUE/FALSE, and columns in another order: read by name, the right rate
     spreadsheet = cell_csv(tmp_path / "a.csv", fields, [f"{i},TRUE,{'TRUE' if i < 9 else 'FALSE'},5,0.3,0.5,1.0"
-                                                        for i in range(10)])
+                                                        + made for i in range(10)])
     assert np.mean([r["success"] for r in of.read_episodes(spreadsheet)]) == 0.9
     reordered = cell_csv(tmp_path / "b.csv", "success,target_present," + fields.replace("target_present,success,", ""),
-                         [f"{'True' if i < 9 else 'False'},true,{i},5,0.3,0.5,1.0" for i in range(10)])
+                         [f"{'True' if i < 9 else 'False'},true,{i},5,0.3,0.5,1.0" + made for i in range(10)])
     rows = of.read_episodes(reordered)
     assert np.mean([r["success"] for r in rows]) == 0.9 and all(r["target_present"] for r in rows)
-    bad = {"truncated line": cell_csv(tmp_path / "c.csv", fields, ["0,True,True,5,0.3,0.5,1.0", "1,True,Tr"]),
-           "no header": cell_csv(tmp_path / "d.csv", "0,True,True,5,0.3,0.5,1.0", ["1,True,True,5,0.3,0.5,1.0"]),
-           "not a boolean": cell_csv(tmp_path / "e.csv", fields, ["0,yes,True,5,0.3,0.5,1.0"])}
+    good = "0,True,True,5,0.3,0.5,1.0" + made
+    lines = {"truncated line": [good, "1,True,Tr"], "not true or false": ["0,yes,True,5,0.3,0.5,1.0" + made],
+             "seed 0 is also on line 2": [good, good], "0 steps": ["0,True,True,0,0.3,0.5,1.0" + made],
+             "131 steps": ["0,True,True,131,0.3,0.5,1.0" + made], "not a fraction": ["0,True,True,5,1.3,0.5,1.0" + made],
+             "a target seen in a scene without one": ["0,False,True,5,0.3,0.5,1.0" + made],
+             "not one of": ["0,True,True,5,0.3,0.5,1.0" + made.replace("gnbv", "nbv")],
+             "differs from line 2": [good, "1,True,True,5,0.3,0.5,1.0" + made.replace("cubes", "random-shapes")]}
+    bad = {name: cell_csv(tmp_path / f"bad{i}.csv", fields, rows) for i, (name, rows) in enumerate(lines.items())}
+    bad["no header"] = cell_csv(tmp_path / "d.csv", good, [good.replace("0,", "1,", 1)])
+    bad["no origin columns"] = cell_csv(tmp_path / "f.csv", fields.split(",agent")[0], ["0,True,True,5,0.3,0.5,1.0"])
     for name, path in bad.items():
-        with pytest.raises(of.UsageError, match=str(path.name)):
+        with pytest.raises(of.UsageError, match=str(path.name)) as error:
             of.read_episodes(path)
+        assert name in str(error.value) or name in ("no header", "no origin columns", "truncated line"), error.value
     # inside a table: one line naming the file, before any episode runs
     out = tmp_path / "results"
     out.mkdir()
-    (out / "gnbv-ap-cubes.csv").write_bytes((tmp_path / "c.csv").read_bytes())
+    (out / "gnbv-ap-cubes.csv").write_bytes(bad["truncated line"].read_bytes())
     no_episodes(monkeypatch)
     assert "gnbv-ap-cubes.csv, line 3" in one_line_exit_two(capsys, ["eval", "--table", "--out", str(out)])
+
+
+def test_a_random_agents_csv_under_a_gnbv_cell_is_refused_and_plain_eval_replaces_no_cell(tmp_path, capsys,
+                                                                                        monkeypatch):
+    out = tmp_path / "results"
+    out.mkdir()
+    cell = out / "gnbv-ap-cubes.csv"
+    assert of.main(["eval", "--agent", "random", "--episodes", "2", "--workers", "1", "--out", str(cell)]) == 0
+    capsys.readouterr()
+    random_cell = cell.read_bytes()
+    no_episodes(monkeypatch)
+    err = one_line_exit_two(capsys, ["eval", "--table", "--episodes", "2", "--from-csv", "--out", str(out)])
+    assert "gnbv-ap-cubes.csv was made by random on ap/cubes" in err and "not gnbv on ap/cubes" in err
+    # a plain eval never replaces another experiment's CSV: another agent's, or other episodes of its own
+    for args in (["--agent", "gnbv"], ["--agent", "random", "--episodes", "3"], ["--agent", "random", "--seed", "5"]):
+        one_line_exit_two(capsys, ["eval", *args, "--workers", "1", "--out", str(cell)])
+    assert cell.read_bytes() == random_cell
 
 
 def test_outputs_are_checked_before_any_episode(tmp_path, capsys, monkeypatch):
@@ -1254,7 +1285,7 @@ def test_training_keeps_its_last_update_and_an_interrupted_one(tmp_path, monkeyp
     with pytest.raises(of.TrainingInterrupted) as stop:
         of.train(Reach, tmp_path / "cut", total_steps=256 * 10, ppo=p, progress=False)
     assert stop.value.update == 2 and of.read_checkpoint(tmp_path / "cut" / "checkpoint.pt")["update"] == 2
-    assert len(of.read_train_log(tmp_path / "cut" / "log.csv")) == 2
+    assert len(of.read_train_log(tmp_path / "cut" / "log.csv", 2)) == 2
     monkeypatch.setattr(of, "ppo_update", real_update)
     resumed = of.train(Reach, tmp_path / "cut", total_steps=256 * 3, ppo=p, progress=False,
                        resume=of.read_checkpoint(tmp_path / "cut" / "checkpoint.pt", run=True))
@@ -1271,7 +1302,7 @@ def test_the_success_interval_never_prints_minus_zero(capsys):
     assert of.wilson_interval(0, 20)[0] == 0.0 and of.wilson_interval(20, 20)[1] == 1.0
     rows = [dict(seed=i, target_present=True, success=False, steps=130, target_seen_fraction=0.0,
                  explored_fraction=0.5, decision_ms=1.0) for i in range(20)]
-    of.print_summary("gnbv", "ap", "cubes", of.summarise(rows))
+    of.print_summary("gnbv", "ap", "cubes", of.summarise(rows), 1.0)
     assert "-0.0" not in capsys.readouterr().out
 
 
@@ -1479,9 +1510,11 @@ def test_train_runs_in_a_fresh_clone(tmp_path):
 # two runs at once, a closed output, a full disk, a dead worker: nothing lost, nothing false
 # ------------------------------------------------------------------------------------------------
 
-def fake_rows(seed: int, episodes: int) -> list:
+def fake_rows(seed: int, episodes: int, agent="gnbv", task="ap", scene="cubes", policy=None, overrides=None) -> list:
+    """Rows as `evaluate` writes them, with the origin a cell of this agent would have."""
+    origin = of.cell_origin(agent, task, scene, policy, overrides)
     return [dict(seed=s, target_present=True, success=True, steps=3, target_seen_fraction=0.3,
-                 explored_fraction=0.2, decision_ms=1.0) for s in range(seed, seed + episodes)]
+                 explored_fraction=0.2, decision_ms=1.0, **origin) for s in range(seed, seed + episodes)]
 
 
 def test_a_second_run_into_a_folder_being_written_is_refused_and_the_first_keeps_its_cells(tmp_path, capsys,
@@ -1492,7 +1525,7 @@ def test_a_second_run_into_a_folder_being_written_is_refused_and_the_first_keeps
         if not second:   # the same job submitted twice: a real second process into the same folder
             second.append(subprocess.run([sys.executable, "objfind.py", "eval", "--table", "--episodes", "2",
                                           "--out", str(out)], cwd=HERE, capture_output=True, text=True))
-        return fake_rows(seed, episodes)
+        return fake_rows(seed, episodes, agent, task, scene, kwargs.get("policy"), kwargs.get("overrides"))
     monkeypatch.setattr(of, "evaluate", evaluate_while_a_second_run_starts)
     assert of.main(["eval", "--table", "--episodes", "1", "--out", str(out)]) == 0
     refused = second[0]
@@ -1605,3 +1638,112 @@ def test_runs_into_different_run_folders_go_on_side_by_side(tmp_path):
         assert same.returncode == 2 and "being written" in same.stderr
     finally:
         of.release_locks()
+
+
+@pytest.mark.parametrize("overrides, field", [
+    (dict(min_objects=30, max_objects=5), "min_objects"), (dict(workspace_m=0.2), "pile_margin_m"),
+    (dict(num_piles=3, min_objects=2), "num_piles"), (dict(horizon=0), "horizon"),
+    (dict(voxels_per_side=2.5), "voxels_per_side"), (dict(trunc_m=float("nan")), "trunc_m"),
+    (dict(num_piles=3, pile_overlap_chance=0.0), "pile_overlap_chance"), (dict(variable_scale=(2.0, 1.0)), "variable_scale"),
+    (dict(target_size_known="no"), "target_size_known"), (dict(object_size_m=0.2), "object_size_m")])
+def test_settings_that_cannot_build_a_scene_are_refused_at_construction_naming_the_field(overrides, field):
+    with pytest.raises(ValueError, match=f"^{field}="):
+        of.ObjectFindingEnv("ip", **overrides)
+    with pytest.raises(ValueError, match=f"^{field}="):
+        dataclasses.replace(of.TASKS["ip"], **overrides)
+
+
+def test_step_or_reset_after_close_says_the_env_is_closed():
+    env = of.ObjectFindingEnv("ap", seed=2)
+    env.reset()
+    env.close()
+    for call in (lambda: env.step(np.zeros(6)), env.reset):
+        with pytest.raises(RuntimeError, match="is closed: make a new one"):
+            call()
+
+
+@pytest.mark.parametrize("args, said", [
+    (["eval", "--agent", "gnbv", "--workers", "100000"], "worker processes"),
+    (["eval", "--agent", "gnbv", "--episodes", "10000000"], "number of episodes"),
+    (["eval", "--agent", "gnbv", "--seed", str(2 ** 40)], "a seed must be"),
+    (["eval", "--agent", "gnbv", "--seed", str(2 ** 32 - 5), "--episodes", "10"], "past the largest seed"),
+    (["train", "--set", "hidden=100000"], "hidden=100000"),
+    (["eval", "--table", "--scene", "random-shapes"], "drop --scene"),
+    (["eval", "--agent", "gnbv", "--from-csv"], "--from-csv reads the cells of --table"),
+    (["train", "--resume", "--seed", "3"], "start a new run")])
+def test_out_of_bounds_values_and_flags_that_would_be_ignored_are_one_line(args, said, capsys, monkeypatch, tmp_path):
+    no_episodes(monkeypatch)
+    monkeypatch.chdir(tmp_path)
+    try:
+        code = of.main(args)
+    except SystemExit as error:    # argparse's own checks exit
+        code = error.code
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and said in err, err
+
+
+def test_a_diverging_run_stops_with_one_line_and_keeps_its_last_finite_update(tmp_path, capsys, monkeypatch):
+    real_update = of.ppo_update
+
+    def third_update_diverges(model, *args, **kwargs):
+        stats = real_update(model, *args, **kwargs)
+        if len(calls) == 2:
+            with of.torch.no_grad():
+                next(model.parameters()).fill_(float("inf"))
+                raise FloatingPointError("a non-finite loss or weight")
+        calls.append(1)
+        return stats
+    calls = []
+    monkeypatch.setattr(of, "ppo_update", third_update_diverges)
+    with pytest.raises(of.TrainingInterrupted) as stop:
+        of.train(Reach, tmp_path / "run", total_steps=256 * 10, ppo=TINY_PPO, progress=False)
+    assert stop.value.update == 2 and stop.value.cause.startswith("training diverged in update 3")
+    assert of.read_checkpoint(tmp_path / "run" / "checkpoint.pt")["update"] == 2   # finite: read_checkpoint checks
+    # from the command line: a learning rate that sends the weights to infinity in the first update
+    args = ["train", "--steps", "48", "--set", "batch_steps=48", "--set", "learning_rate=1e12", "--workers", "1",
+            "--out", str(tmp_path / "cli")]
+    monkeypatch.setattr(of, "ppo_update", real_update)
+    assert of.main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "training diverged in update 1" in err and "nothing was kept" in err, err
+
+
+def test_resume_checks_the_checkpoints_run_fields_and_a_log_a_spreadsheet_saved(tmp_path, capsys):
+    run = tmp_path / "run"
+    of.train(Reach, run, total_steps=256 * 2, ppo=TINY_PPO, progress=False)
+    of.release_locks()
+    good = of.torch.load(run / "checkpoint.pt", weights_only=True)
+    for field, value in (("update", -1), ("seed", 2 ** 40), ("wall_s", float("nan")), ("rollout_streams", 0),
+                         ("task", "xp"), ("optimizer", [])):
+        of.torch.save({**good, field: value}, run / "checkpoint.pt")
+        with pytest.raises(of.UsageError, match=f"impossible {field}"):
+            of.read_checkpoint(run / "checkpoint.pt", run=True)
+    of.torch.save(good, run / "checkpoint.pt")
+    log = (run / "log.csv").read_text().splitlines()
+    for broken, said in ((log[:2], "ends at update 1, the checkpoint at 2"), ([log[0], log[2], log[1]], "is update 2"),
+                         ([log[0], log[1], "2,=SUM(A1)" + log[2][1:]], "not a row of numbers")):
+        (run / "log.csv").write_text("\n".join(broken) + "\n")
+        with pytest.raises(of.UsageError, match=said):
+            of.read_train_log(run / "log.csv", 2)
+    # a spreadsheet's byte-order mark and exponent notation read back
+    (run / "log.csv").write_text("\ufeff" + "\n".join([log[0], log[1], "2.0" + log[2][1:]]) + "\n", encoding="utf-8")
+    assert [row["update"] for row in of.read_train_log(run / "log.csv", 2)] == [1, 2]
+
+
+def test_a_huge_file_is_refused_as_a_checkpoint_before_it_is_loaded(tmp_path, monkeypatch):
+    huge = tmp_path / "huge.pt"
+    with open(huge, "wb") as f:
+        f.truncate(of.MAX_CHECKPOINT_BYTES + 1)        # sparse: costs no disk
+    monkeypatch.setattr(of.torch, "load", lambda *a, **k: pytest.fail("torch.load ran on a huge file"))
+    with pytest.raises(of.UsageError, match="an objfind checkpoint has at most 64 MB"):
+        of.read_checkpoint(huge)
+
+
+def test_a_checkpoint_whose_tensors_do_not_fit_names_the_tensor(tmp_path):
+    checkpoint = of.torch.load(of.default_weights("a3de", "ap"), weights_only=True)
+    name = sorted(checkpoint["model"])[0]
+    checkpoint["model"][name] = checkpoint["model"][name][:1]
+    of.torch.save(checkpoint, tmp_path / "cut.pt")
+    with pytest.raises(of.UsageError, match=f"does not hold an objfind network: {name} is of another shape"):
+        of.read_checkpoint(tmp_path / "cut.pt")
