@@ -139,7 +139,7 @@ class Settings:
     # Sec. IV-B: baselines
     gnbv_samples: int = 10              # n, poses GNBV samples near the current one (simulation)
     gnbv_explored_to_stop: float = 0.97 # GNBV terminates above this explored share ("no target")
-    seen_threshold: float = 0.2         # target observed once this share of its surface was seen
+    seen_threshold: float = 0.2         # target observed once more than this share of its surface was seen
     # The information rule, where the paper is silent: what every agent is told about its target. True:
     # its size (surface area) is part of the task; the baselines' perceived share and the encoder's
     # detection sum are relative to it. False: no agent is told; both are relative to the nominal cube.
@@ -708,6 +708,12 @@ def wrist_rig(cfg: Settings) -> Rig:
 # policy's action -> the next gripper pose. The same class runs on simulated and on recorded frames.
 # ================================================================================================
 
+def target_observed(share: float, seen_threshold: float) -> bool:
+    """The target counts as observed once more than seen_threshold of its surface was seen (Sec. III-C, "more
+    than 20 %"): the one rule for the world's truth and for every agent's own estimate."""
+    return share > seen_threshold
+
+
 class Searcher:
     """The robot's side of Fig. 2: its wrist rig, the volume its views fill, the encoder, the told target
     size, the stop threshold and the limits of one step. It opens no physics client."""
@@ -754,8 +760,12 @@ class Searcher:
         return self._state_of[1].copy()
 
     def perceived_target_share(self) -> float:
-        """Seen target area over the told target's: the searchers' stop rule (the world's truth judges)."""
+        """Seen target area over the told target's, as the volume has it (the world's truth judges)."""
         return self.volume.seen_target_area_m2() / self.target_area_m2
+
+    def target_found(self) -> bool:
+        """The searchers' stop rule: the target observed by the volume's estimate (`target_observed`)."""
+        return target_observed(self.perceived_target_share(), self.seen_threshold)
 
     def goal_pose(self, T_world_tool: np.ndarray, action: np.ndarray) -> np.ndarray:
         """The pose (T_world_tool) an action asks for: dx, dy, dz in the yaw frame times max_step_m, roll
@@ -824,7 +834,7 @@ class ScriptedAgent:
     def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
         T = T_world_tool
         yaw, roll = yaw_roll_of(T[:3, :3])
-        if searcher.perceived_target_share() >= searcher.seen_threshold or self.turned_rad >= 2 * np.pi:
+        if searcher.target_found() or self.turned_rad >= 2 * np.pi:
             return stop_action()
         action = np.zeros(ACTION_SIZE, np.float32)
         action[ACTION_MOVES] = -1.0
@@ -900,7 +910,7 @@ class GreedyNextBestView:
 
     def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
         if (searcher.volume.explored_fraction() > self.explored_to_stop or self.stalled >= self.stall_steps
-                or searcher.perceived_target_share() > searcher.seen_threshold):
+                or searcher.target_found()):
             return stop_action()
         actions = self.rng.uniform(-1, 1, (self.samples, ACTION_SIZE))   # n random poses one step away
         actions[:, ACTION_MOVES] = -1.0
@@ -980,7 +990,7 @@ class GridExhaustiveSearch:
             if np.linalg.norm(offset[:2]) > self.node_tol_m and self.tries < self.tries_per_node:
                 break
             self.next, self.tries = self.next + 1, 0
-        if searcher.perceived_target_share() > searcher.seen_threshold or self.next >= len(self.route):
+        if searcher.target_found() or self.next >= len(self.route):
             return stop_action()
         self.tries += abs(offset[2]) < self.node_tol_m           # only count tries at the sweep height
         step = rotation(yaw, "z").T @ offset / searcher.max_step_m
@@ -1391,11 +1401,10 @@ def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) 
                        None if kind is not None else (path, scale))
 
 
-def build_workspace(sim, cfg: Settings) -> tuple[int, int, int]:
-    """Floor, four walls and the gripper on its constraint; returns (gripper, ghost, constraint) ids. The
+def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
+    """Floor, four walls and the gripper on its constraint; returns the (gripper, constraint) ids. The
     gripper's only visual is a transparent speck (TinyRenderer would draw its collision shapes into the
-    wrist view); the outside view paints it in. The ghost, parked under the floor, keeps the stored
-    episodes' body numbering, on which Bullet's broadphase order depends."""
+    wrist view); the outside view paints it in."""
     half, thick = cfg.workspace_m / 2, cfg.wall_thickness_m
 
     def static_box(half_extents, pos, rgba):
@@ -1414,11 +1423,8 @@ def build_workspace(sim, cfg: Settings) -> tuple[int, int, int]:
                                  rgbaColor=(0, 0, 0, 0))
     gripper = sim.createMultiBody(cfg.gripper_mass_kg, col, speck, [0, 0, 1])
     sim.changeDynamics(gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
-    vis = sim.createVisualShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, visualFramePositions=centres,
-                                    rgbaColors=[GRIPPER_RGBA] * 3)
-    ghost = sim.createMultiBody(0, -1, vis, [0, 0, -5])
     constraint = sim.createConstraint(gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], [0, 0, 1])
-    return gripper, ghost, constraint
+    return gripper, constraint
 
 
 def object_count(cfg: Settings, scene: str, rng: np.random.Generator) -> tuple[int, bool]:
@@ -1659,7 +1665,7 @@ class ObjectFindingEnv(gym.Env):
     def _info(self) -> dict:
         seen = float(self.target_seen.mean()) if self.target_present else 0.0
         return dict(target_present=self.target_present, target_seen_fraction=seen,
-                    target_observed=seen >= self.cfg.seen_threshold,
+                    target_observed=target_observed(seen, self.cfg.seen_threshold),
                     explored_fraction=self.searcher.volume.explored_fraction(), steps=self.steps)
 
     def checked_action(self, action) -> np.ndarray:
@@ -1708,7 +1714,7 @@ class ObjectFindingEnv(gym.Env):
         sim.resetSimulation()
         sim.setGravity(0, 0, -9.81)
         sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, numSolverIterations=cfg.solver_iterations)
-        self.gripper, self.ghost, self.constraint = build_workspace(sim, cfg)
+        self.gripper, self.constraint = build_workspace(sim, cfg)
         scene = build_scene(sim, cfg, self.scene, rng)
         self.objects, self.target_present, self.heaped = scene.objects, scene.target_present, scene.heaped
         self.target_points, self.target_normals = scene.target_points, scene.target_normals
@@ -1757,7 +1763,7 @@ class ObjectFindingEnv(gym.Env):
         lo = np.minimum(lo, corners.min(0)) - SWEEP_MARGIN_M
         hi = np.maximum(hi, corners.max(0)) + SWEEP_MARGIN_M
         near = sim.getOverlappingObjects(lo.tolist(), hi.tolist()) or []
-        if not self.disturbed and all(body in (self.gripper, self.ghost) for body, _ in near):
+        if not self.disturbed and all(body == self.gripper for body, _ in near):
             self._teleport(goal, R_goal)
             return
         q_goal = quat_of(R_goal)

@@ -1747,3 +1747,22 @@ def test_a_checkpoint_whose_tensors_do_not_fit_names_the_tensor(tmp_path):
     of.torch.save(checkpoint, tmp_path / "cut.pt")
     with pytest.raises(of.UsageError, match=f"does not hold an objfind network: {name} is of another shape"):
         of.read_checkpoint(tmp_path / "cut.pt")
+
+
+def test_the_twenty_percent_rule_is_one_function_and_exactly_twenty_percent_is_not_observed(monkeypatch):
+    env = of.ObjectFindingEnv("ip", seed=3)
+    env.reset()
+    calls = []
+    real = of.target_observed
+    monkeypatch.setattr(of, "target_observed", lambda share, threshold: calls.append(share) or real(share, threshold))
+    monkeypatch.setattr(of.Searcher, "perceived_target_share", lambda self: 0.2)   # exactly the threshold
+    for name in ("scripted", "gnbv", "ges"):
+        agent = of.make_agent(name, env.cfg, seed=0)
+        agent.reset(env.searcher, env.gripper_pose())
+        calls.clear()
+        action = agent.act(env.searcher, env.gripper_pose())
+        assert calls == [0.2] and action[of.ACTION_MOVES] < 0, name    # asked the rule, and did not stop
+    env.target_seen[:] = np.arange(len(env.target_seen)) < 0.2 * len(env.target_seen)   # the truth: exactly 20 %
+    calls.clear()
+    assert env._info()["target_observed"] is False and calls == [0.2]
+    env.close()
