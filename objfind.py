@@ -2770,38 +2770,44 @@ def exploring_actions(rng: np.random.Generator, n: int) -> np.ndarray:
 
 BENCH_STAGES = (("physics", "_drive_gripper"), ("render", "_render"), ("detect", "_detect"),
                 ("integrate", "searcher.observe"), ("encode", "searcher.state"))   # a step's stages, in order
+BENCH_RESETS = 10   # new scenes per measurement of a reset, seeds seed .. seed + 9
 
 
-def bench_stages(task: str, steps: int, seed: int = 0) -> dict:
-    """Mean milliseconds per stage of a step on task/cubes over `steps` exploring steps, and of a reset:
-    each stage's method of the env (or its searcher) is wrapped in a timer, so the step carries none."""
-    env = ObjectFindingEnv(task, "cubes")
+def bench_stages(task: str, scene: str, steps: int, seed: int = 0) -> dict:
+    """Mean milliseconds per stage of a step over `steps` exploring steps, and of a reset (building the
+    scene, then all of it) over BENCH_RESETS seeds: each stage's method of the env (or its searcher) is
+    wrapped in a timer that counts only in its phase, so a reset's view is not counted as a step's."""
+    env = ObjectFindingEnv(task, scene)
     env.reset(seed=seed + 1000)     # warm-up: the first reset in a process pays one-time costs
-    totals, counting = dict.fromkeys([stage for stage, _ in BENCH_STAGES] + ["step", "reset"], 0.0), [False]
+    stages = [stage for stage, _ in BENCH_STAGES] + ["step", "scene", "reset"]
+    totals, phase = dict.fromkeys(stages, 0.0), [None]
 
-    def timed(stage, method):       # a reset renders, detects, fuses and encodes too: not counted
+    def timed(stage, method):
         def run(*args, **kwargs):
             t0 = time.perf_counter()
             result = method(*args, **kwargs)
-            totals[stage] += (time.perf_counter() - t0) * counting[0]
+            if phase[0] == ("reset" if stage == "scene" else "step"):
+                totals[stage] += time.perf_counter() - t0
             return result
         return run
-    for stage, name in BENCH_STAGES:
+    for stage, name in BENCH_STAGES + (("scene", "_build_scene"),):
         owner, name = (env.searcher, name.removeprefix("searcher.")) if "." in name else (env, name)
         setattr(owner, name, timed(stage, getattr(owner, name)))
-    t0, resets = time.perf_counter(), 1
+
+    def measure(phase_name, stage, call):
+        phase[0], t0 = phase_name, time.perf_counter()
+        result = call()
+        totals[stage], phase[0] = totals[stage] + time.perf_counter() - t0, None
+        return result
+    for i in range(BENCH_RESETS):
+        measure("reset", "reset", lambda: env.reset(seed=seed + i))
     env.reset(seed=seed)
-    totals["reset"] += time.perf_counter() - t0
     for action in exploring_actions(np.random.default_rng(seed), steps):
-        counting[0], t0 = True, time.perf_counter()
-        done = env.step(action)[2]
-        totals["step"], counting[0] = totals["step"] + time.perf_counter() - t0, False
-        if done:
-            t0, resets = time.perf_counter(), resets + 1
+        if measure("step", "step", lambda: env.step(action))[2]:
             env.reset()
-            totals["reset"] += time.perf_counter() - t0
     env.close()
-    return {stage: 1e3 * total / (resets if stage == "reset" else steps) for stage, total in totals.items()}
+    return {stage: 1e3 * total / (BENCH_RESETS if stage in ("scene", "reset") else steps)
+            for stage, total in totals.items()}
 
 
 def bench_throughput(task: str, steps: int, seed: int = 0) -> float:
@@ -2817,31 +2823,34 @@ def bench_throughput(task: str, steps: int, seed: int = 0) -> float:
     return rate
 
 
-def run_bench(steps: int, workers: int, repeats: int = 3) -> str:
+def run_bench(steps: int, workers: int, repeats: int = 3, scenes: tuple = SCENES) -> str:
     """The report of `python objfind.py bench` as Markdown. Each measurement replays the same seeded work
-    `repeats` times; another load on the machine can only add time, so the fastest run is reported."""
-    stages = [stage for stage, _ in BENCH_STAGES] + ["step", "reset"]
-    lines = [f"Per-stage milliseconds of one step (mean over {steps} exploring steps, one process, "
-             f"best of {repeats} runs):", "", "| task / scene | " + " | ".join(stages) + " |",
-             "|---" * (len(stages) + 1) + "|"]
-    throughput = ["", f"Env steps per second (resets included, best of {repeats} runs, {os.cpu_count()} cores), "
-                  "each process stepping its own env:", "", f"| task / scene | 1 process | {workers} processes |",
+    `repeats` times; another load on the machine can only add time, so each column's fastest is reported."""
+    stages = [stage for stage, _ in BENCH_STAGES] + ["step", "scene", "reset"]
+    lines = [f"Milliseconds per stage of a step (mean over {steps} exploring steps) and of a reset (building "
+             f"the scene, then all of it; mean over {BENCH_RESETS} seeds); one process, best of {repeats} runs:",
+             "", "| task / scene | " + " | ".join(stages) + " |", "|---" * (len(stages) + 1) + "|"]
+    throughput = ["", f"Env steps per second on cubes (resets included, best of {repeats} runs, {os.cpu_count()} "
+                  "cores), each process stepping its own env:", "", f"| task | 1 process | {workers} processes |",
                   "|---|---|---|"]
-    with (tqdm(total=2 * 3 * repeats, desc="bench", unit="run", file=sys.stderr) as bar,
+    with (tqdm(total=2 * (len(scenes) + 2) * repeats, desc="bench", unit="run", file=sys.stderr) as bar,
           process_pool(workers) as pool):
-        def best(measure, key=max):
+        def best(measure):
             results = []
             for _ in range(repeats):
                 results.append(measure())
                 bar.update()
-            return key(results)
+            return results
 
         for task in ("ap", "ip"):
-            means = best(lambda: bench_stages(task, steps), key=lambda ms: min(ms, key=lambda m: m["step"]))
-            lines.append(f"| {task} / cubes | " + " | ".join(f"{means[stage]:.2f}" for stage in stages) + " |")
-            one = best(lambda: bench_throughput(task, steps))
-            many = best(lambda: sum(pool.map(bench_throughput, [task] * workers, [steps] * workers, range(workers))))
-            throughput.append(f"| {task} / cubes | {one:.0f} | {many:.0f} |")
+            for scene in scenes:
+                runs = best(lambda: bench_stages(task, scene, steps))
+                lines.append(f"| {task} / {scene} | " + " | ".join(f"{min(r[s] for r in runs):.2f}" for s in stages)
+                             + " |")
+            one = max(best(lambda: bench_throughput(task, steps)))
+            many = max(best(lambda: sum(pool.map(bench_throughput, [task] * workers, [steps] * workers,
+                                                 range(workers)))))
+            throughput.append(f"| {task} | {one:.0f} | {many:.0f} |")
     return "\n".join(lines + throughput)
 
 
@@ -3141,7 +3150,7 @@ def cmd_train(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    print(run_bench(args.steps, args.workers, args.repeats))
+    print(run_bench(args.steps, args.workers, args.repeats, SCENES if args.scene == "all" else (args.scene,)))
     return 0
 
 
@@ -3219,6 +3228,7 @@ def build_parser() -> ArgumentParser:
     evaluation.set_defaults(func=cmd_eval)
     bench = commands.add_parser("bench", help="per-stage step time and env steps/s")
     bench.add_argument("--steps", type=steps_arg, default=300, help="steps per measurement")
+    bench.add_argument("--scene", choices=SCENES + ("all",), default="all", help="scene kind (default all)")
     bench.add_argument("--workers", type=workers_arg, default=os.cpu_count() or 1,
                        help="processes for the throughput rows (default all cores)")
     bench.add_argument("--repeats", type=whole_number_arg(1, 100, "repeats"), default=3,

@@ -611,12 +611,13 @@ def test_constructor_seed_makes_the_first_reset_reproducible():
         a.close(), b.close()
 
 
-def test_bench_stages_account_for_the_step():
-    means = of.bench_stages("ap", 20)
+@pytest.mark.parametrize("scene", ["cubes", "object-models"])
+def test_bench_stages_account_for_the_step_and_the_reset(scene):
+    means = of.bench_stages("ap", scene, 20)
     stages = ("physics", "render", "detect", "integrate", "encode")
     assert all(means[s] >= 0 for s in stages) and means["render"] > 0 and means["integrate"] > 0
     assert sum(means[s] for s in stages) <= means["step"] * 1.02      # the stages are parts of the step
-    assert means["reset"] > 0
+    assert 0 < means["scene"] < means["reset"]                        # building the scene is part of a reset
 
 
 # ------------------------------------------------------------------------------------------------
