@@ -153,6 +153,7 @@ class Settings:
     variable_scale: tuple = (0.5, 2.0)  # variable primitives: size factor drawn uniformly from this range
     object_mass_kg: float = 0.1         # a wooden 4 cm cube weighs about 40 g; 0.1 keeps piles stable
     object_friction: float = 0.6        # lateral friction: objects slide when pushed, piles still stand
+    model_rolling_friction_m: float = 0.001   # mesh models (balls, blobs) roll to a stop: Bullet's rolling friction
     # wrist camera (TinyRenderer)
     image_width: int = 80
     image_height: int = 60
@@ -1115,6 +1116,17 @@ class PhysicsClient(BulletClient):
         self._shapes, self._pid = {}, os.getpid()
         self._client = pb.connect(pb.DIRECT)
 
+    def new_world(self) -> None:
+        """An empty world (pybullet's resetSimulation frees every shape, so the shapes made are forgotten)."""
+        self.resetSimulation()
+        self._shapes.clear()
+
+    def shapes(self, key, make) -> tuple:
+        """(collision, visual) shape ids for `key`, made by make() once per world and shared by its bodies."""
+        if key not in self._shapes:
+            self._shapes[key] = make()
+        return self._shapes[key]
+
     def __getattr__(self, name):
         """BulletClient's bound call, kept: later calls (thousands per step in physics) skip the lookup."""
         bound = super().__getattr__(name)
@@ -1287,6 +1299,82 @@ def body_frame_mesh(sim, body: int, urdf_path: str, scale: float) -> tuple[np.nd
     return (v * scale - np.array(inertial_pos)) @ R, f
 
 
+def decimate(vertices: np.ndarray, faces: np.ndarray, cells: int) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex clustering (Rossignac and Borrel 1993): one vertex, the mean, per cell of a cells^3 grid over
+    the mesh's extent; triangles that collapse, and repeats, dropped. TinyRenderer's cost grows with triangles."""
+    cell_m = (vertices.max(0) - vertices.min(0)).max() / cells
+    _, cluster, counts = np.unique(np.floor((vertices - vertices.min(0)) / cell_m).astype(np.int64), axis=0,
+                                   return_inverse=True, return_counts=True)
+    cluster = cluster.reshape(-1)
+    merged = np.zeros((len(counts), 3))
+    np.add.at(merged, cluster, vertices)
+    f = cluster[faces]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+    return merged / counts[:, None], f[np.sort(first)]
+
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
+    k = np.arange(n) + 0.5
+    height, turn = 1 - 2 * k / n, np.pi * (1 + 5 ** 0.5) * k
+    ring = np.sqrt(1 - height ** 2)
+    return np.stack([ring * np.cos(turn), ring * np.sin(turn), height], 1)
+
+
+@dataclass(frozen=True)
+class MeshModel:
+    """A mesh model as the world uses it, in the body frame of pybullet's loadURDF (the inertial frame)."""
+    vertices: np.ndarray          # (V, 3) the full visual mesh: the ground truth's surface
+    faces: np.ndarray             # (F, 3)
+    render_vertices: np.ndarray   # decimated, what the wrist camera renders
+    render_faces: np.ndarray
+    hull: np.ndarray              # (<= HULL_DIRECTIONS, 3) extreme vertices: the object collides as their hull
+    rests: tuple                  # 3 x 3 rotations (body to world) in which it lies still on a floor
+
+
+RENDER_CELLS = 8        # a rendered model keeps a vertex per cell of an 8^3 grid: 7 mm on a 5.5 cm model
+HULL_DIRECTIONS = 64    # an object collides as the convex hull of its furthest vertices along 64 directions
+REST_DIRECTIONS = 1000  # "down" directions tried for the orientations a model rests in ...
+REST_NEIGHBOURHOOD = np.cos(np.radians(15))   # ... each lower than every other within 15 degrees ...
+MAX_RESTS = 4           # ... the lowest few
+
+
+@functools.cache
+def rest_directions() -> tuple[np.ndarray, np.ndarray]:
+    """The "down" directions tried for resting orientations, and which of them are neighbours."""
+    down = fibonacci_directions(REST_DIRECTIONS)
+    return down, down @ down.T > REST_NEIGHBOURHOOD
+
+
+def rest_rotations(hull: np.ndarray) -> tuple:
+    """Rotations (body to world, 3 x 3) in which a convex body rests on a floor: the local minima over "down"
+    directions d of the centre of mass's height, max over the hull of p . d (the body origin is its centre of
+    mass). A body is stable where a tilt either way would raise it."""
+    down, near = rest_directions()
+    height = (hull @ down.T).max(0)
+    minima = [i for i in np.argsort(height) if height[i] <= height[near[i]].min()][:MAX_RESTS]
+    rests = []
+    for d in down[minima]:   # the rotation taking d onto -z (Rodrigues), about the axis d x -z
+        axis, cos = np.cross(d, [0.0, 0.0, -1.0]), -d[2]
+        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        rests.append(np.eye(3) + K + K @ K / (1 + cos) if cos > -1 + 1e-9 else np.diag([1.0, -1.0, -1.0]))
+    return tuple(rests)
+
+
+@functools.lru_cache(maxsize=None)
+def mesh_model(urdf_path: str, scale: float) -> MeshModel:
+    """What the world needs of a mesh model, built once per process: a scene then makes its bodies from
+    arrays instead of loading the URDF, renders a decimated copy and collides one convex hull (a compound
+    of convex pieces costs several times more per physics step), and places it in a pose it rests in."""
+    vertices, faces = urdf_mesh(urdf_path)
+    inertial = re.search(r"<inertial>.*?<origin[^>]*xyz=\"([^\"]+)\"", Path(urdf_path).read_text(), re.DOTALL)
+    vertices = (vertices - (np.array(inertial.group(1).split(), float) if inertial else 0)) * scale   # loadURDF's frame
+    directions = np.concatenate([np.eye(3), -np.eye(3), fibonacci_directions(HULL_DIRECTIONS - 6)])   # spans the box
+    hull = vertices[np.unique(np.argmax(vertices @ directions.T, axis=0))]
+    return MeshModel(vertices, faces, *decimate(vertices, faces, RENDER_CELLS), hull, rest_rotations(hull))
+
+
 @functools.lru_cache(maxsize=None)
 def exterior_surface(urdf_path: str, scale: float, min_cos: float, candidates: int = 8000, views: int = 40,
                      pixels: int = 128):
@@ -1356,7 +1444,8 @@ class SceneObject:
     vertices: np.ndarray   # (V, 3) mesh in the body's frame (pybullet's base = centre-of-mass frame)
     faces: np.ndarray      # (F, 3)
     radius_m: float        # of the footprint, for placing objects apart
-    half_height_m: float   # lowest vertex below the body origin when upright
+    half_height_m: float   # lowest vertex below the body origin when resting
+    rest: np.ndarray       # 3 x 3 rotation in which it rests (before a yaw about the vertical)
     model: tuple | None = None   # (URDF path, scale) of a mesh model; None for a convex primitive
 
 
@@ -1380,25 +1469,32 @@ def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) 
             v, f = prism_mesh(2.2 * h, 2 * h)
             col = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist())
             vis = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist(), indices=f.reshape(-1).tolist())
-        body = sim.createMultiBody(cfg.object_mass_kg, sim.createCollisionShape(**col),
-                                  sim.createVisualShape(**vis, rgbaColor=rgba),
-                                  useMaximalCoordinates=True)
+        shapes = sim.shapes((kind, h), lambda: (sim.createCollisionShape(**col), sim.createVisualShape(**vis)))
+        rest, model = np.eye(3), None
     else:
         data = pybullet_data.getDataPath()
         if scene == "random-shapes":
             i = RANDOM_SHAPES[rng.integers(len(RANDOM_SHAPES))]
-            path, scale = os.path.join(data, "random_urdfs", f"{i:03d}", f"{i:03d}.urdf"), RANDOM_SHAPE_SCALE
+            model = os.path.join(data, "random_urdfs", f"{i:03d}", f"{i:03d}.urdf"), RANDOM_SHAPE_SCALE
         else:
             name, scale = OBJECT_MODELS[rng.integers(len(OBJECT_MODELS))]
-            path = os.path.join(data, name)
-        body = sim.loadURDF(path, globalScaling=scale, useMaximalCoordinates=True)
-        sim.changeVisualShape(body, -1, rgbaColor=rgba, textureUniqueId=-1)
-        v, f = body_frame_mesh(sim, body, path, scale)
+            model = os.path.join(data, name), scale
+        mesh = mesh_model(*model)
+        shapes = sim.shapes(model, lambda: (
+            sim.createCollisionShape(pb.GEOM_MESH, vertices=mesh.hull.tolist()),
+            sim.createVisualShape(pb.GEOM_MESH, vertices=mesh.render_vertices.tolist(),
+                                  indices=mesh.render_faces.reshape(-1).tolist())))
+        v, f, rest = mesh.vertices, mesh.faces, mesh.rests[rng.integers(len(mesh.rests))]
+    body = sim.createMultiBody(cfg.object_mass_kg, *shapes, useMaximalCoordinates=True)
+    sim.changeVisualShape(body, -1, rgbaColor=rgba)
     # Objects may sleep: a resting pile then costs nothing per physics step until something touches it.
     sim.changeDynamics(body, -1, lateralFriction=cfg.object_friction,
                        activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING)
-    return SceneObject(body, v, f, float(np.linalg.norm(v[:, :2], axis=1).max()), float(-v[:, 2].min()),
-                       None if kind is not None else (path, scale))
+    if model is not None:
+        sim.changeDynamics(body, -1, rollingFriction=cfg.model_rolling_friction_m)
+    resting = v @ rest.T
+    return SceneObject(body, v, f, float(np.linalg.norm(resting[:, :2], axis=1).max()), float(-resting[:, 2].min()),
+                       rest, model)
 
 
 def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
@@ -1535,7 +1631,7 @@ def build_scene(sim, cfg: Settings, scene: str, rng: np.random.Generator) -> Sce
         objects.append(make_object(sim, scene, cfg, rng, rgba))
     poses = (pile_positions if heaped else scatter_positions)(objects, cfg, rng)
     for obj, (xyz, yaw) in zip(objects, poses):
-        sim.resetBasePositionAndOrientation(obj.body, xyz, pb.getQuaternionFromEuler([0, 0, yaw]))
+        sim.resetBasePositionAndOrientation(obj.body, xyz, quat_of(rotation(yaw, "z") @ obj.rest))
     settle(sim, objects, cfg, cfg.settle_pile_substeps if heaped else cfg.settle_scatter_substeps)
     if target_present:
         points, normals, area = target_surface(objects[0], cfg, rng)
@@ -1711,7 +1807,7 @@ class ObjectFindingEnv(gym.Env):
     def _build_scene(self, rng) -> None:
         """A fresh world: physics settings, the workspace with the gripper, then a drawn scene."""
         cfg, sim = self.cfg, self.sim
-        sim.resetSimulation()
+        sim.new_world()
         sim.setGravity(0, 0, -9.81)
         sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, numSolverIterations=cfg.solver_iterations)
         self.gripper, self.constraint = build_workspace(sim, cfg)

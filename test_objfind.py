@@ -1767,3 +1767,79 @@ def test_the_twenty_percent_rule_is_one_function_and_exactly_twenty_percent_is_n
     calls.clear()
     assert env._info()["target_observed"] is False and calls == [0.2]
     env.close()
+
+
+MODEL_PATHS = [(str(Path(of.pybullet_data.getDataPath()) / name), scale) for name, scale in of.OBJECT_MODELS] + \
+              [(str(Path(of.pybullet_data.getDataPath()) / "random_urdfs" / f"{i:03d}" / f"{i:03d}.urdf"),
+                of.RANDOM_SHAPE_SCALE) for i in (0, 7, 500)]
+
+
+@pytest.mark.parametrize("path, scale", MODEL_PATHS)
+def test_a_cheaper_mesh_model_keeps_the_ground_truths_mesh_in_loadurdfs_frame(path, scale):
+    model = of.mesh_model(path, scale)
+    sim = of.PhysicsClient()
+    try:
+        vertices, faces = of.body_frame_mesh(sim, sim.loadURDF(path, globalScaling=scale), path, scale)
+    finally:
+        sim.disconnect()
+    assert np.allclose(model.vertices, vertices, atol=1e-12) and np.array_equal(model.faces, faces)
+    assert len(model.render_faces) <= max(len(faces), 12) and len(model.render_faces) <= 600   # what is rendered
+    lo, hi = vertices.min(0), vertices.max(0)
+    assert np.all(model.hull >= lo - 1e-12) and np.all(model.hull <= hi + 1e-12) and len(model.hull) <= 64
+    assert np.allclose(model.hull.max(0), hi) and np.allclose(model.hull.min(0), lo)   # the hull spans the mesh
+    for rest in model.rests:
+        assert np.allclose(rest @ rest.T, np.eye(3)) and np.isclose(np.linalg.det(rest), 1.0)
+
+
+def test_the_targets_ground_truth_comes_from_the_full_mesh(monkeypatch):
+    env = of.ObjectFindingEnv("ap", "object-models")
+    for seed in range(20):
+        env.reset(seed=seed)
+        if env.target_present:
+            break
+    points, normals, area = of.exterior_surface(*env.objects[0].model, env.cfg.seen_min_cos)
+    assert env.target_area_m2 == area
+    rows = {tuple(p) for p in np.round(points, 12)}
+    assert all(tuple(p) in rows for p in np.round(env.target_points, 12))
+    env.close()
+
+
+@pytest.mark.parametrize("scene", ["object-models", "random-shapes", "fixed-primitives"])
+def test_a_second_reset_reuses_models_and_gives_a_fresh_envs_scene(scene):
+    used, fresh = of.ObjectFindingEnv("ip", scene), of.ObjectFindingEnv("ip", scene)
+    try:
+        used.reset(seed=4)
+        used.reset(seed=5)
+        fresh.reset(seed=5)
+        built = of.mesh_model.cache_info().misses
+        poses = lambda env: np.array([np.r_[env.sim.getBasePositionAndOrientation(o.body)[0],
+                                            env.sim.getBasePositionAndOrientation(o.body)[1]] for o in env.objects])
+        assert np.array_equal(poses(used), poses(fresh))
+        assert np.array_equal(used.target_points, fresh.target_points) and used.target_area_m2 == fresh.target_area_m2
+        assert np.array_equal(used.searcher.state(used.gripper_pose()), fresh.searcher.state(fresh.gripper_pose()))
+        used.reset(seed=4)
+        assert of.mesh_model.cache_info().misses == built       # the models of a scene seen before: reused
+    finally:
+        used.close(), fresh.close()
+
+
+@pytest.mark.parametrize("path, scale", MODEL_PATHS[:6])
+def test_a_model_placed_in_a_rest_orientation_stays_there(path, scale):
+    cfg, model = of.TASKS["ap"], of.mesh_model(path, scale)
+    sim = of.PhysicsClient()
+    try:
+        sim.setGravity(0, 0, -9.81)
+        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, numSolverIterations=cfg.solver_iterations)
+        sim.createMultiBody(0, sim.createCollisionShape(of.pb.GEOM_PLANE))
+        body = sim.createMultiBody(cfg.object_mass_kg, sim.createCollisionShape(of.pb.GEOM_MESH,
+                                                                                vertices=model.hull.tolist()))
+        sim.changeDynamics(body, -1, lateralFriction=cfg.object_friction)
+        rest = model.rests[0]
+        sim.resetBasePositionAndOrientation(body, [0, 0, -(model.vertices @ rest.T)[:, 2].min() + 0.001],
+                                            of.quat_of(rest))
+        for _ in range(240):
+            sim.stepSimulation()
+        R = np.array(of.pb.getMatrixFromQuaternion(sim.getBasePositionAndOrientation(body)[1])).reshape(3, 3)
+        assert np.degrees(np.arccos(np.clip((np.trace(R.T @ rest) - 1) / 2, -1, 1))) < 10   # it did not tip over
+    finally:
+        sim.disconnect()
