@@ -346,10 +346,12 @@ def test_the_gripper_stays_in_the_workspace_and_never_passes_a_wall(ap_env):
     half = s.workspace_m / 2
     ap_env.reset(seed=0)
     ap_env._teleport(np.array([0.2, 0.0, 0.05]), of.gripper_rotation(0.0, 0.0))
-    for _ in range(6):                                    # low, straight into the +x wall
+    for _ in range(6):                                    # low, straight into the +x wall (body 2)
         ap_env.step(np.array([1.0, 0, -0.3, 0, 0, -1]))
         lo, hi = ap_env.sim.getAABB(ap_env.gripper)
-        assert hi[0] < half + 0.004                       # the wall's inner face is at x = half
+        assert hi[0] < half + s.wall_thickness_m / 2      # the wall's inner face is at x = half
+        into_wall = [c[8] for c in ap_env.sim.getContactPoints(ap_env.gripper) if c[2] == 2]
+        assert min(into_wall, default=0.0) > -0.002       # pushed against it, at most 2 mm in
     for _ in range(8):                                    # up and out over the -y wall
         ap_env.step(np.array([0.0, -1.0, 1.0, 0, 1.0, -1]))
     for _ in range(8):                                    # down into the floor
