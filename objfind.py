@@ -1334,7 +1334,7 @@ class MeshModel:
     rests: tuple                  # 3 x 3 rotations (body to world) in which it lies still on a floor
 
 
-RENDER_CELLS = 8        # a rendered model keeps a vertex per cell of an 8^3 grid: 7 mm on a 5.5 cm model
+RENDER_CELLS = 6        # a rendered model keeps a vertex per cell of a 6^3 grid: 9 mm on a 5.5 cm model
 HULL_DIRECTIONS = 64    # an object collides as the convex hull of its furthest vertices along 64 directions
 REST_DIRECTIONS = 1000  # "down" directions tried for the orientations a model rests in ...
 REST_NEIGHBOURHOOD = np.cos(np.radians(15))   # ... each lower than every other within 15 degrees ...
