@@ -2503,7 +2503,7 @@ def cell_origin(agent: str, task: str, scene: str, policy: dict | None, override
     """What made a cell's episodes, stamped on each of its CSV rows: a table refuses a cell made otherwise."""
     size_known = (overrides or {}).get("target_size_known", TASKS[task].target_size_known)
     return dict(agent=agent, task=task, scene=scene, weights=policy_fingerprint(policy),
-                target_size_known=size_known, versions=package_versions())
+                target_size_known=size_known, world=WORLD_REVISION, versions=package_versions())
 
 
 def make_agent(name: str, cfg: Settings, seed: int, policy: dict | None = None):
@@ -2603,8 +2603,10 @@ def summarise(rows: list) -> dict:
 
 EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fraction", "explored_fraction",
                   "decision_ms")   # the columns of an evaluation CSV, one row per episode ...
-ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "versions")   # ... and what made it
+ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
+WORLD_REVISION = 2   # of the simulated world and the agents: raised by every change that alters the episodes
+                     # of a seed (2: mesh models as hulls, placed resting; scenes settle at 120 Hz; one 20 % rule)
 
 
 def parse_bool(text: str) -> bool:
@@ -2633,7 +2635,7 @@ def fraction(text: str) -> float:
 EPISODE_COLUMNS = dict(seed=int, target_present=parse_bool, success=parse_bool, steps=int,
                        target_seen_fraction=fraction, explored_fraction=fraction, decision_ms=float,
                        agent=one_of(list(BASELINES) + list(LEARNED)), task=one_of(list(TASKS)), scene=one_of(SCENES),
-                       weights=str, target_size_known=parse_bool, versions=str)
+                       weights=str, target_size_known=parse_bool, world=int, versions=str)
 
 
 def checked_episode(row: dict, first: dict | None) -> dict:
@@ -2648,7 +2650,7 @@ def checked_episode(row: dict, first: dict | None) -> dict:
     if not row["target_present"] and row["target_seen_fraction"] > 0:
         raise ValueError("a target seen in a scene without one")
     if first and any(row[k] != first[k] for k in ORIGIN_FIELDS):
-        raise ValueError("its origin (agent, task, scene, weights, rule, versions) differs from line 2's")
+        raise ValueError("its origin (agent, task, scene, weights, rule, world, versions) differs from line 2's")
     return row
 
 
@@ -2689,7 +2691,7 @@ def stored_cell(path: Path, seeds: list, origin: dict) -> list | None:
     want = {k: origin[k] for k in CELL_IDENTITY}
     if rows and made != want:
         describe = lambda o: (f"{o['agent']} on {o['task']}/{o['scene']} (weights {o['weights']}, target size "
-                              f"{'known' if o['target_size_known'] else 'unknown'})")
+                              f"{'known' if o['target_size_known'] else 'unknown'}, world {o['world']})")
         raise UsageError(f"{str(path)} was made by {describe(made)}, not {describe(want)}: "
                          "pass another --out, or delete that file to replace it")
     have = [r["seed"] for r in rows]

@@ -736,9 +736,13 @@ def test_eval_csv_round_trips_for_resumed_tables(tmp_path):
     with pytest.raises(of.UsageError, match="holds 1 episodes from seed 3, not 1 from seed 4"):
         of.stored_cell(path, [4], origin)               # another experiment's cell: refused, never replaced
     ablation = of.cell_origin("gnbv", "ap", "cubes", None, dict(target_size_known=False))
-    with pytest.raises(of.UsageError, match="made by gnbv on ap/cubes .weights none, target size known., not "
-                                            "gnbv on ap/cubes .weights none, target size unknown"):
+    with pytest.raises(of.UsageError, match="made by gnbv on ap/cubes .weights none, target size known, world "
+                                            ".., not gnbv on ap/cubes .weights none, target size unknown"):
         of.stored_cell(path, [3], ablation)
+    older_world = dict(origin, world=origin["world"] - 1)    # made before a change that alters episodes
+    of.write_csv([dict(rows[0], **older_world)], path)
+    with pytest.raises(of.UsageError, match=f"world {of.WORLD_REVISION - 1}., not .* world {of.WORLD_REVISION}"):
+        of.stored_cell(path, [3], origin)
 
 
 def test_table_two_pools_the_no_target_scenes_of_each_agent():
@@ -1124,8 +1128,8 @@ def cell_csv(path: Path, header: str, lines: list) -> Path:
 
 def test_episode_csvs_are_read_strictly(tmp_path, capsys, monkeypatch):
     fields = "seed,target_present,success,steps,target_seen_fraction,explored_fraction,decision_ms"
-    fields += ",agent,task,scene,weights,target_size_known,versions"
-    made = ",gnbv,ap,cubes,none,True," + of.package_versions()
+    fields += ",agent,task,scene,weights,target_size_known,world,versions"
+    made = f",gnbv,ap,cubes,none,True,{of.WORLD_REVISION}," + of.package_versions()
     # a spreadsheet's TRUE/FALSE, and columns in another order: read by name, the right rate
     spreadsheet = cell_csv(tmp_path / "a.csv", fields, [f"{i},TRUE,{'TRUE' if i < 9 else 'FALSE'},5,0.3,0.5,1.0"
                                                         + made for i in range(10)])
