@@ -871,8 +871,21 @@ class GreedyNextBestView:
         uu, vv = np.meshgrid(u, v)
         rays = np.stack([(uu.ravel() - K[0, 2]) / K[0, 0], (vv.ravel() - K[1, 2]) / K[1, 1],
                          np.ones(uu.size)], 1)                                # (R, 3) at depth 1
-        depths = np.arange(camera.near_m, camera.far_m, searcher.volume.voxel_m)   # one sample per voxel
-        self.ray_points = (rays[:, None, :] * depths[None, :, None]).astype(np.float32)   # (R, D, 3)
+        self.depths = np.arange(camera.near_m, camera.far_m, searcher.volume.voxel_m)   # one sample per voxel
+        self.ray_directions = rays
+        self.reached = np.zeros(searcher.volume.weight.size, bool)   # scratch: voxels one view would observe
+        self.ray_points = (rays[:, None, :] * self.depths[None, :, None]).astype(np.float32)   # (R, D, 3)
+
+    def samples_needed(self, T: np.ndarray, box_half: float) -> int:
+        """How many samples along the rays of camera pose T can matter: a ray hits nothing once it has left
+        the square of the floor and walls, or gone below the floor (a straight ray never comes back)."""
+        direction, start = self.ray_directions @ T[:3, :3].T, T[:3, 3]   # world = start + depth * direction
+        with np.errstate(divide="ignore", invalid="ignore"):
+            side = np.where(direction[:, :2] == 0, np.inf,
+                            (np.sign(direction[:, :2]) * box_half - start[:2]) / direction[:, :2])
+            down = np.where(direction[:, 2] < 0, -start[2] / direction[:, 2], np.inf)
+        leave = np.minimum(side.min(axis=1), down)
+        return int(min(len(self.depths), np.searchsorted(self.depths, leave.max(), "right") + 2))
 
     def newly_observed(self, searcher: Searcher, T_cameras: np.ndarray, ee_xyz) -> np.ndarray:
         """For each (4, 4) camera pose, the unobserved voxels in the gripper's crop its rays would reach, counted
@@ -885,7 +898,8 @@ class GreedyNextBestView:
         shape = np.array(volume.shape)
         half, floor_half = searcher.workspace_m / 2, searcher.workspace_m / 2 + 2 * self.wall_thickness_m
         for c, T in enumerate(T_cameras):
-            world = self.ray_points @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)  # (R, D, 3)
+            samples = self.ray_points[:, :self.samples_needed(T, floor_half)]   # the rest can hit nothing
+            world = samples @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)  # (R, D', 3)
             index = np.floor((world - volume.origin) / volume.voxel_m).astype(np.int64)
             inside = np.all((index >= 0) & (index < shape), axis=-1)
             inside &= np.all(np.abs(world[..., :2] - ee_xyz[:2]) <= searcher.crop_m / 2, axis=-1)
@@ -897,8 +911,10 @@ class GreedyNextBestView:
             blocked = (inside & occupied[flat]) | floor | wall
             open_ray = ~np.logical_or.accumulate(blocked, axis=1)      # before the first blocker
             returns = blocked.any(axis=1)                              # (R,) the ray brings a depth
-            new = open_ray & inside & ~observed[flat] & returns[:, None]
-            counts[c] = len(np.unique(flat[new]))
+            new = flat[open_ray & inside & ~observed[flat] & returns[:, None]]
+            self.reached[new] = True                                   # each voxel once, however many rays
+            counts[c] = np.count_nonzero(self.reached)
+            self.reached[new] = False
         return counts
 
     def centring_error(self, T_cameras: np.ndarray, target_xyz: np.ndarray, K: np.ndarray) -> np.ndarray:

@@ -1849,3 +1849,20 @@ def test_a_model_placed_in_a_rest_orientation_stays_there(path, scale):
         assert np.degrees(np.arccos(np.clip((np.trace(R.T @ rest) - 1) / 2, -1, 1))) < 10   # it did not tip over
     finally:
         sim.disconnect()
+
+
+def test_gnbv_counts_the_same_voxels_with_its_rays_cut_where_they_can_hit_nothing(ap_env):
+    agent = of.GreedyNextBestView(ap_env.cfg, 0)
+    ap_env.reset(seed=2)
+    agent.reset(ap_env.searcher, ap_env.gripper_pose())
+    for _ in range(4):
+        T = ap_env.gripper_pose()
+        actions = agent.rng.uniform(-1, 1, (10, of.ACTION_SIZE))
+        actions[:, of.ACTION_MOVES] = -1.0
+        cameras = np.stack([ap_env.searcher.camera_pose(ap_env.searcher.goal_pose(T, a)) for a in actions])
+        cut = agent.newly_observed(ap_env.searcher, cameras, T[:3, 3])
+        assert min(agent.samples_needed(c, 0.34) for c in cameras) < len(agent.depths)   # some rays were cut
+        agent.samples_needed = lambda T_camera, box_half: len(agent.depths)               # every sample
+        assert np.array_equal(agent.newly_observed(ap_env.searcher, cameras, T[:3, 3]), cut)
+        del agent.samples_needed
+        ap_env.step(actions[int(np.argmax(cut))].astype(np.float32))
