@@ -17,7 +17,7 @@ Read top to bottom, in the order data flows (Fig. 2: world -> images -> searcher
     searcher         Searcher: views in, state out, an action -> the next gripper pose (no simulator)
     agents           RandomAgent, ScriptedAgent, GreedyNextBestView, two_opt, GridExhaustiveSearch
     policy           ActorCritic, PPOAgent: A3DE and I3DE
-    world I-III      render_rgbd, the detector's noise; scenes; ObjectFindingEnv (a gymnasium.Env,
+    world I-III      render_rgbd, the detector's noise; scenes (MeshModel); ObjectFindingEnv (a gymnasium.Env,
                      registered as objfind/...-v0): physics, the wrist view, ground truth, rewards
     learning         gae, ppo_update, collect_rollout, ppo_iteration
     ---------------- the paper's system ends; the harness follows
@@ -1234,8 +1234,9 @@ def paint_gripper(rgb: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray
 
 
 # ================================================================================================
-# The world II (Sec. III-C, Table I): scenes. Object meshes, the five scene kinds, piles, and the
-# target's ground-truth surface (the points that decide "seen"; never shown to an agent).
+# The world II (Sec. III-C, Table I): scenes. Object meshes (a model renders decimated and collides as
+# one hull; its full mesh is the truth), the five scene kinds, piles, and the target's ground-truth
+# surface (the points that decide "seen"; never shown to an agent).
 # ================================================================================================
 
 def box_mesh(half) -> tuple[np.ndarray, np.ndarray]:
