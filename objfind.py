@@ -1412,10 +1412,7 @@ def exterior_surface(urdf_path: str, scale: float, min_cos: float, candidates: i
                       [0, pixels * distance / (2.4 * radius), pixels / 2], [0, 0, 1]])
         footprint = 2.4 * radius / pixels
         seen_from = np.zeros(len(points))             # signed: which side of the face was seen
-        k = np.arange(views) + 0.5               # view directions spread evenly: a Fibonacci lattice
-        height, turn = 1 - 2 * k / views, np.pi * (1 + 5 ** 0.5) * k
-        ring = np.sqrt(1 - height ** 2)
-        for d in np.stack([ring * np.cos(turn), ring * np.sin(turn), height], 1):
+        for d in fibonacci_directions(views):
             z_axis = -d
             x_axis = np.cross(z_axis, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
             x_axis /= np.linalg.norm(x_axis)
@@ -2509,6 +2506,7 @@ def policy_fingerprint(policy: dict | None) -> str:
     return digest.hexdigest()[:12]
 
 
+@functools.cache
 def package_versions() -> str:
     """The packages an episode depends on: a cell is exact only under the same versions (README)."""
     return (f"python={platform.python_version()} numpy={np.__version__} "
@@ -3203,9 +3201,7 @@ def cmd_eval(args) -> int:
     args.scene = args.scene or "cubes"
     policy = agent_policy(args)
     csv_path = Path(args.out) if args.out else None
-    if csv_path is not None:           # a file, in a folder this run can write and has locked
-        if csv_path.is_dir():
-            raise UsageError(f"{str(csv_path)!r} is a folder, not a file")
+    if csv_path is not None:           # a file (stored_cell refuses a folder), in a folder this run has locked
         writable_folder(csv_path.parent)
         origin = cell_origin(args.agent, args.task, args.scene, policy, information_rule(args))
         stored_cell(csv_path, list(range(args.seed, args.seed + args.episodes)), origin)
