@@ -176,7 +176,8 @@ class Settings:
     physics_hz: int = 240
     solver_iterations: int = 10         # enough for stable piles, 3x cheaper than pybullet's 50
     max_substeps: int = 120             # to reach one action's pose, 0.5 s of simulated time at most
-    settle_substeps: int = 48           # then at most this many for pushed objects to come to rest
+    settle_substeps: int = 24           # then at most 0.1 s for pushed objects to come to rest (the next move
+                                        # steps physics if they still roll: each step's observation waits less)
     settle_speed: float = 0.02          # objects slower than this (m/s) count as at rest
     new_scene_hz: int = 120             # a new scene settles at half the physics rate: half the cost, unseen
     settle_scatter_substeps: int = 120  # a new scene: 1 s for scattered objects to come to rest ...
@@ -2316,11 +2317,15 @@ def process_pool(workers: int, initializer=ignore_sigint, initargs=()) -> Proces
 
 
 def stop_pool(pool: ProcessPoolExecutor) -> None:
-    """Cancel what waits and end what runs, at once: Ctrl-C must not wait for a running job."""
+    """Cancel what waits and end what runs, at once: Ctrl-C must not wait for a running job. The pool's
+    manager thread is then joined, so that nothing of it is left for the interpreter's exit to wake."""
     processes = list((pool._processes or {}).values())
     pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         process.terminate()
+    for process in processes:
+        process.join()
+    pool.shutdown(wait=True)
 
 
 DEAD_WORKER = "a worker process died (killed, or out of memory?)"
@@ -2551,10 +2556,12 @@ def run_jobs(function, jobs: list, workers: int, done=None) -> list:
         for job in [pool.submit(function, *job) for job in jobs] if pool else jobs:
             results.append(job.result() if pool else function(*job))
             done and done(results[-1])
-    except BrokenProcessPool:
-        raise UsageError(f"{DEAD_WORKER}: stopped; what was already written is kept") from None
-    finally:
+    except BaseException as error:   # Ctrl-C, a dead worker, a failed episode: end the workers at once
         pool and stop_pool(pool)
+        if isinstance(error, BrokenProcessPool):
+            raise UsageError(f"{DEAD_WORKER}: stopped; what was already written is kept") from None
+        raise
+    pool and pool.shutdown(wait=True)
     return results
 
 
@@ -2620,7 +2627,7 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
                   "decision_ms")   # the columns of an evaluation CSV, one row per episode ...
 ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
-WORLD_REVISION = 2   # of the simulated world and the agents: raised by every change that alters the episodes
+WORLD_REVISION = 3   # of the simulated world and the agents: raised by every change that alters the episodes
                      # of a seed (2: mesh models as hulls, placed resting; scenes settle at 120 Hz; one 20 % rule)
 
 
