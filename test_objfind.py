@@ -1866,3 +1866,115 @@ def test_gnbv_counts_the_same_voxels_with_its_rays_cut_where_they_can_hit_nothin
         assert np.array_equal(agent.newly_observed(ap_env.searcher, cameras, T[:3, 3]), cut)
         del agent.samples_needed
         ap_env.step(actions[int(np.argmax(cut))].astype(np.float32))
+
+
+# --- recordings, replay and the arm's loop ---------------------------------------------------------
+
+RECORDED_SEED = 1   # the shipped I3DE pushes for 30 steps on this ip/cubes scene, then stops
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """An I3DE episode recorded by `demo --record`, and the env's own states and actions of it."""
+    folder = tmp_path_factory.mktemp("recording") / "episode"
+    policy = of.learned_policy("i3de", "ip")
+    of.run_demo("i3de", "ip", "cubes", RECORDED_SEED, folder.parent / "demo", policy, record=folder)
+    env = of.ObjectFindingEnv("ip", "cubes")
+    agent = of.make_agent("i3de", env.cfg, RECORDED_SEED, policy)
+    state, _ = env.reset(seed=RECORDED_SEED)
+    states, actions, done = [state], [], False
+    while not done:
+        actions.append(agent.act(env.searcher, env.gripper_pose()))
+        state, _, done, _, info = env.step(actions[-1])
+        states.append(state)
+    env.close()
+    return folder, states, actions, info
+
+
+def test_a_recorded_episode_replays_to_the_env_states_and_actions_exactly(recording):
+    folder, states, actions, info = recording
+    assert info["terminated_by_agent"] and len(actions) > 5
+    cfg, rig, meta, frames = of.read_recording(folder)
+    assert len(frames) == len(actions) and rig.rgb is rig.depth
+    rows, replayed, _ = of.replay(cfg, rig, meta, frames, "i3de", of.learned_policy("i3de", "ip"))
+    assert len(rows) == len(actions) and rows[-1]["stop"] and not any(row["stop"] for row in rows[:-1])
+    for row, action in zip(rows, actions):
+        assert np.array_equal([row[name] for name in of.ACTION_NAMES], action)
+    for a, b in zip(replayed, states):   # the env's state after each frame, bit for bit
+        assert np.array_equal(a, b)
+    # each move's goal is where the recording's next frame has the gripper (it moved there, pushing)
+    next_xyz = np.array([f["T_base_tool"][:3, 3] for f in frames[1:]])
+    goals = np.array([[row[k] for k in ("goal_x_m", "goal_y_m", "goal_z_m")] for row in rows[:-1]])
+    assert np.median(np.linalg.norm(goals - next_xyz, axis=1)) < 0.01
+
+
+def test_millimetre_png_depth_replays_to_the_end(recording, tmp_path, capsys):
+    folder = recording[0]
+    assert of.main(["replay", str(folder), "--agent", "i3de", "--depth", "png", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "actions equal to the recording's own" in out
+    rows = list(of.csv.DictReader(open(tmp_path / f"replay-{folder.name}-i3de.csv")))
+    assert len(rows) >= 1 and all(np.isfinite(float(row["dx"])) for row in rows)
+    assert rows[-1]["stop"] == "True" or len(rows) == len(recording[2])
+    sheet = cv2.imread(str(tmp_path / f"replay-{folder.name}-i3de.png"))
+    assert sheet is not None and sheet.shape[1] == 4 * of.PANEL[0]
+
+
+def broken_copy(folder: Path, tmp_path: Path, name: str) -> Path:
+    copy = tmp_path / name
+    of.shutil.copytree(folder, copy)
+    return copy
+
+
+def test_a_broken_recording_is_one_line_exit_two_and_writes_nothing(recording, tmp_path, capsys):
+    folder = recording[0]
+    missing = broken_copy(folder, tmp_path, "missing")
+    for path in (missing / "frames").glob("000003-*"):
+        path.unlink()
+    small = broken_copy(folder, tmp_path, "small")
+    cv2.imwrite(str(small / "frames" / "000002-depth.png"), np.zeros((10, 10), np.uint16))
+    pose = broken_copy(folder, tmp_path, "pose")
+    (pose / "frames" / "000001-pose.json").write_text('{"T_base_tool": [[1, 0')
+    intrinsics = broken_copy(folder, tmp_path, "intrinsics")
+    meta = of.json.loads((intrinsics / "recording.json").read_text())
+    meta["depth_camera"]["width"] = meta["depth_camera"]["width"] * 2
+    (intrinsics / "recording.json").write_text(of.json.dumps(meta))
+    expected = {"missing": "frame 3", "small": "depth image", "pose": "unreadable", "intrinsics": "depth image"}
+    for name, words in expected.items():
+        out = tmp_path / f"out-{name}"
+        assert of.main(["replay", str(tmp_path / name), "--depth", "png", "--out", str(out)]) == 2, name
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], (name, err)
+        assert not out.exists(), name   # refused before any output
+
+
+def test_detection_masks_replace_the_colour_detector(recording, tmp_path):
+    folder = recording[0]
+    cfg, rig, meta, frames = of.read_recording(folder, "png")
+    _, states, _ = of.replay(cfg, rig, meta, frames, "i3de", of.learned_policy("i3de", "ip"))
+    assert max(s[of.STATE_DETECTION_SUM] for s in states) > 0   # the colour detector sees the target
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for i, frame in enumerate(frames):
+        cv2.imwrite(str(masks / f"{i:06d}.png"), np.zeros(frame["rgb"].shape[:2], np.uint8))
+    cfg, rig, meta, frames = of.read_recording(folder, "png", masks)
+    _, states, _ = of.replay(cfg, rig, meta, frames, "i3de", of.learned_policy("i3de", "ip"))
+    assert all(s[of.STATE_DETECTION_SUM] == 0 for s in states)   # a detector that sees nothing
+
+
+def test_the_arm_loop_works_in_any_base_frame(recording):
+    """The same frames, with the workspace moved and turned in the robot's base frame: the same actions,
+    and goal poses moved the same way."""
+    cfg, rig, meta, frames = of.read_recording(recording[0])
+    rows, _, _ = of.replay(cfg, rig, meta, frames[:6], "i3de", of.learned_policy("i3de", "ip"))
+    T_base_workspace = np.eye(4)
+    T_base_workspace[:3, :3] = of.rotation(0.7, "z")
+    T_base_workspace[:3, 3] = [0.4, -0.2, 0.05]
+    moved = [dict(f, T_base_tool=T_base_workspace @ f["T_base_tool"], T_base_depth=T_base_workspace @ f["T_base_depth"])
+             for f in frames[:6]]
+    rows_moved, _, _ = of.replay(cfg, rig, dict(meta, T_base_workspace=T_base_workspace), moved, "i3de",
+                                 of.learned_policy("i3de", "ip"))
+    for a, b in zip(rows, rows_moved):
+        assert np.allclose([a[n] for n in of.ACTION_NAMES], [b[n] for n in of.ACTION_NAMES], atol=1e-4)
+        goal = T_base_workspace[:3, :3] @ [a["goal_x_m"], a["goal_y_m"], a["goal_z_m"]] + T_base_workspace[:3, 3]
+        assert np.allclose(goal, [b["goal_x_m"], b["goal_y_m"], b["goal_z_m"]], atol=1e-3)
