@@ -17,6 +17,7 @@ Read top to bottom, in the order data flows (Fig. 2: world -> images -> searcher
     searcher         Searcher: views in, state out, an action -> the next gripper pose (no simulator)
     agents           RandomAgent, ScriptedAgent, GreedyNextBestView, two_opt, GridExhaustiveSearch
     policy           ActorCritic, PPOAgent: A3DE and I3DE
+    on an arm        ArmSearch: a wrist frame in, the next gripper pose in the robot's base frame out
     world I-III      render_rgbd, the detector's noise; scenes (MeshModel); ObjectFindingEnv (a gymnasium.Env,
                      registered as objfind/...-v0): physics, the wrist view, ground truth, rewards
     learning         gae, ppo_update, collect_rollout, ppo_iteration
@@ -24,9 +25,10 @@ Read top to bottom, in the order data flows (Fig. 2: world -> images -> searcher
     files            read_checkpoint (every check in one place), atomic writes, logs, learning curves
     training runs    train: worker processes, resume, checkpoints, Ctrl-C and SIGTERM
     evaluation       make_agent, run_episode, evaluate (each row stamped with what made it), the Table II layout
-    demo, bench      run_demo (PNG + MP4), run_bench (per-stage milliseconds, steps/s)
+    demo, replay     run_demo (PNG + MP4); recordings as an RGB-D logger writes them, replayed through ArmSearch
+    bench            run_bench (per-stage milliseconds, steps/s)
     soak             random episodes with hostile actions: crashes, non-finite values, leaks
-    command line     python objfind.py demo | eval | train | bench | soak
+    command line     python objfind.py demo | replay | eval | train | bench | soak
 """
 from __future__ import annotations
 
