@@ -164,6 +164,18 @@ class Settings:
     fov_y_deg: float = 45.0             # 58 x 45 degrees, close to the real depth camera's 62 x 45
     near_m: float = 0.01
     camera_offset_m: float = 0.08       # camera sits this far behind the fingertips, on the approach axis
+    # the rig's sensing (Sec. IV, III-D; README "Choices"): every value 0 gives the ideal RGB-D camera above
+    depth_width: int = 0                # a separate depth camera of this many pixels (0: the RGB-D camera) ...
+    depth_height: int = 0
+    depth_fov_y_deg: float = 0.0        # ... and this vertical field of view
+    rgb_offset_m: tuple = (0.0, 0.0, 0.0)   # the RGB camera's origin in the depth camera's frame
+    depth_min_range_m: float = 0.0      # no return closer than this
+    tof_noise_ratio: float = 0.0        # depth noise: standard deviation / distance
+    tof_missing_share: float = 0.0      # pixels without a return, at random
+    tof_edge_jump_m: float = 0.0        # a pixel whose neighbour lies this much nearer or farther is on a depth
+    tof_edge_drop_share: float = 0.0    # edge: the camera drops this share of them, the rest mix both depths
+    hand_eye_error_m: float = 0.0       # the cameras' true pose on the gripper is off by this distance ...
+    hand_eye_error_rad: float = 0.0     # ... and angle, in directions drawn per episode
     # gripper
     gripper_mass_kg: float = 0.5
     gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper
@@ -254,6 +266,10 @@ class Settings:
         "object_size_m": above(0), "object_mass_kg": above(0), "gripper_mass_kg": above(0),
         "variable_scale": (lambda v: len(v) == 2 and 0 < v[0] <= v[1], "(low, high), 0 < low <= high"),
         "image_width": at_least(8, 1024), "image_height": at_least(8, 1024), "fov_y_deg": above(0, 170),
+        "depth_width": at_least(0, 1024), "depth_height": at_least(0, 1024), "depth_fov_y_deg": at_least(0, 170),
+        "rgb_offset_m": (lambda v: len(v) == 3 and max(map(abs, v)) <= 0.2, "(x, y, z), each within 0.2 m"),
+        "tof_noise_ratio": at_least(0, 0.2), "tof_missing_share": at_least(0, 1), "tof_edge_drop_share": at_least(0, 1),
+        "hand_eye_error_m": at_least(0, 0.05), "hand_eye_error_rad": at_least(0, 0.2),
         "near_m": above(0), "gripper_force_n": above(0), "max_roll_rad": at_least(0, 1.5), "ceiling_ratio": above(0),
         "gripper_start_tries": at_least(1), "reach_tol_m": above(0), "reach_tol_rad": above(0), "stall_m": above(0),
         "physics_hz": at_least(1), "new_scene_hz": at_least(1), "solver_iterations": at_least(1),
@@ -283,7 +299,11 @@ class Settings:
                  f"at most the ceiling (ceiling_ratio x workspace_m = {self.ceiling_m:g})"),
                 ("near_m", self.near_m >= self.far_m, f"under the far plane (2 x workspace_m = {self.far_m:g})"),
                 ("trunc_m", self.trunc_m >= self.volume_height_m,
-                 f"under the volume's height ({self.volume_height_m:g})")):
+                 f"under the volume's height ({self.volume_height_m:g})"),
+                ("depth_width", self.depth_width and not (self.depth_height and self.depth_fov_y_deg),
+                 "0, or given with depth_height and depth_fov_y_deg (a separate depth camera)"),
+                ("depth_min_range_m", self.depth_min_range_m >= self.far_m,
+                 f"under the far plane (2 x workspace_m = {self.far_m:g})")):
             if broken:
                 raise ValueError(f"{name}={getattr(self, name)!r}: it must be {must}")
 
@@ -637,6 +657,12 @@ def rotation(angle: float, axis: str) -> np.ndarray:
     return R
 
 
+def axis_angle_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """The 3 x 3 rotation by `angle` (radians) about a unit axis (Rodrigues' formula)."""
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
 # The gripper in the tool frame (origin between the fingertips, z along the approach axis): a palm
 # and two fingers, as (half extents, centre) boxes.
 GRIPPER_BOXES = (((0.045, 0.015, 0.01), (0.0, 0.0, -0.09)),
@@ -681,10 +707,15 @@ class Rig:
     T_tool_depth: np.ndarray     # (4, 4) the depth camera in the tool frame: the hand-eye calibration
     T_depth_rgb: np.ndarray      # (4, 4) the RGB camera in the depth camera's frame: the extrinsics
 
+    @property
+    def one_camera(self) -> bool:
+        """One RGB-D camera: the colour and the depth image share their pixels."""
+        return self.rgb is self.depth and np.array_equal(self.T_depth_rgb, np.eye(4))
+
     def detections_in_depth_image(self, detections: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
         """The RGB image's (H', W') detection scores at each depth pixel, (H, W): the pixel back-projected
         by its depth, moved into the RGB camera, and the score read where it projects (0 off the image)."""
-        if self.rgb is self.depth and np.array_equal(self.T_depth_rgb, np.eye(4)):
+        if self.one_camera:
             return detections
         K_rgb, T_rgb_depth = self.rgb.K, np.linalg.inv(self.T_depth_rgb)
         in_rgb = back_project(depth_m, self.depth.K) @ T_rgb_depth[:3, :3].T + T_rgb_depth[:3, 3]
@@ -697,16 +728,24 @@ class Rig:
         return out
 
 
+def pinhole(width: int, height: int, fov_y_deg: float, near_m: float, far_m: float) -> Camera:
+    """A camera of square pixels with its principal point at the image's centre."""
+    f = (height / 2) / np.tan(np.radians(fov_y_deg) / 2)
+    return Camera(width, height, np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]]), near_m, far_m)
+
+
 def wrist_rig(cfg: Settings) -> Rig:
-    """The simulated wrist camera: one RGB-D camera on the approach axis, camera_offset_m behind the
-    fingertips. The tool frame already has OpenCV's axes (x to the gripper's right, y backward, z along
-    the approach axis), so the camera looks between the fingers with the gripper's front at the top."""
-    f = (cfg.image_height / 2) / np.tan(np.radians(cfg.fov_y_deg) / 2)
-    K = np.array([[f, 0, cfg.image_width / 2], [0, f, cfg.image_height / 2], [0, 0, 1.0]])
-    camera = Camera(cfg.image_width, cfg.image_height, K, cfg.near_m, cfg.far_m)
-    T_tool_depth = np.eye(4)
+    """The wrist cameras as the robot knows them. By default one RGB-D camera on the approach axis,
+    camera_offset_m behind the fingertips; with depth_width, a depth camera there and the RGB camera
+    rgb_offset_m from it. The tool frame already has OpenCV's axes (x to the gripper's right, y backward,
+    z along the approach axis), so the camera looks between the fingers with the gripper's front at the top."""
+    rgb = pinhole(cfg.image_width, cfg.image_height, cfg.fov_y_deg, max(cfg.near_m, cfg.depth_min_range_m), cfg.far_m)
+    depth = rgb if cfg.depth_width == 0 else pinhole(cfg.depth_width, cfg.depth_height, cfg.depth_fov_y_deg,
+                                                     max(cfg.near_m, cfg.depth_min_range_m), cfg.far_m)
+    T_tool_depth, T_depth_rgb = np.eye(4), np.eye(4)
     T_tool_depth[2, 3] = -cfg.camera_offset_m
-    return Rig(camera, camera, T_tool_depth, np.eye(4))
+    T_depth_rgb[:3, 3] = cfg.rgb_offset_m
+    return Rig(depth, rgb, T_tool_depth, T_depth_rgb)
 
 
 # ================================================================================================
@@ -1248,6 +1287,43 @@ def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, cfg: Se
     return np.clip(noisy, 0.0, 1.0).astype(np.float32)
 
 
+def time_of_flight(depth_m: np.ndarray, rng: np.random.Generator, cfg: Settings) -> np.ndarray:
+    """A time-of-flight camera's errors on a rendered (H, W) depth image, 0 where nothing returned: pixels
+    on a depth edge straddle both surfaces and return a mix of the two depths (flying pixels), or are
+    dropped by the camera's filter; noise grows with distance; some pixels return nothing; nothing closer
+    than the minimum range returns. With every setting 0 it is the image itself, and draws nothing."""
+    out = depth_m
+    if cfg.tof_edge_jump_m > 0:
+        padded = np.pad(depth_m, 1, mode="edge")
+        neighbours = np.stack([padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]])
+        jump = np.where(neighbours > 0, neighbours - depth_m, 0.0)                # (4, H, W)
+        widest = np.take_along_axis(jump, np.abs(jump).argmax(0)[None], 0)[0]    # towards the other surface
+        edge = (depth_m > 0) & (np.abs(widest) > cfg.tof_edge_jump_m)
+        share = rng.uniform(0.0, 0.5, int(edge.sum()))   # of the pixel's footprint on the other surface
+        dropped = rng.random(len(share)) < cfg.tof_edge_drop_share
+        out = depth_m.copy()
+        out[edge] = np.where(dropped, 0.0, depth_m[edge] + share * widest[edge])
+    if cfg.tof_noise_ratio > 0:
+        out = out + (rng.standard_normal(out.shape) * cfg.tof_noise_ratio * out).astype(np.float32)
+    if cfg.tof_missing_share > 0:
+        out = np.where(rng.random(out.shape) < cfg.tof_missing_share, 0.0, out).astype(np.float32)
+    if cfg.depth_min_range_m > 0:
+        out = np.where(out < cfg.depth_min_range_m, 0.0, out).astype(np.float32)
+    return out
+
+
+def mounted_rig(believed: Rig, rng: np.random.Generator, cfg: Settings) -> Rig:
+    """The rig as it truly sits on the gripper: the robot's calibration off by hand_eye_error_m and
+    hand_eye_error_rad in random directions (a fixed error for an episode). No error: the same rig, no draws."""
+    if cfg.hand_eye_error_m == 0 and cfg.hand_eye_error_rad == 0:
+        return believed
+    axis, direction = rng.standard_normal(3), rng.standard_normal(3)
+    error = np.eye(4)
+    error[:3, :3] = axis_angle_rotation(axis / np.linalg.norm(axis), cfg.hand_eye_error_rad)
+    error[:3, 3] = cfg.hand_eye_error_m * direction / np.linalg.norm(direction)
+    return dataclasses.replace(believed, T_tool_depth=believed.T_tool_depth @ error)
+
+
 # A box's 8 corners, indexed x * 4 + y * 2 + z over the signs (-, +), and its 6 faces as corner cycles
 # whose normal (second - first) x (fourth - first) points outward; paint_gripper and box_mesh share them.
 BOX_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
@@ -1719,10 +1795,10 @@ OUTSIDE_VIEW = (320, 240)   # width, height of render() and of each demo panel
 class WristView:
     """One view of the wrist rig as the world made it: what the searcher was fed, and the colour image."""
 
-    rgb: np.ndarray              # (H, W, 3) uint8
-    depth_m: np.ndarray          # (H, W) metres along z, 0 where nothing returned
-    detections: np.ndarray       # (H, W) the simulated detector's scores in [0, 1]
-    T_world_camera: np.ndarray   # (4, 4)
+    rgb: np.ndarray              # (H', W', 3) uint8, the RGB camera's image
+    depth_m: np.ndarray          # (H, W) metres along z, 0 where nothing returned, as the depth camera gave it
+    detections: np.ndarray       # (H', W') the simulated detector's scores in [0, 1] over the RGB image
+    T_world_camera: np.ndarray   # (4, 4) the depth camera's pose as the robot believes it (hand-eye calibration)
 
 
 class ObjectFindingEnv(gym.Env):
@@ -1747,7 +1823,7 @@ class ObjectFindingEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (STATE_SIZE,), np.float32)
         self.searcher = Searcher(self.cfg)
-        self.rig = self.searcher.rig   # the cameras as mounted: today exactly as the robot believes
+        self.rig = self.searcher.rig   # the cameras as mounted; reset() adds the episode's hand-eye error
         self.sim = PhysicsClient()
         self.view: WristView | None = None
 
@@ -1783,17 +1859,28 @@ class ObjectFindingEnv(gym.Env):
         return state, reward, False, False, info
 
     def _observe(self) -> int:
-        """The wrist view: render, detect with the paper's noise, judge "seen" by the ground truth, and
-        feed the searcher; returns the voxels it observed for the first time."""
-        T_world_camera = self.gripper_pose() @ self.rig.T_tool_depth
-        rgb, depth_m = self._render(T_world_camera)
+        """The wrist view: render from where the cameras truly are, detect with the paper's noise, judge
+        "seen" by the ground truth, add the depth camera's errors, and feed the searcher, which places the
+        view by its own calibration; returns the voxels it observed for the first time."""
+        T_world_tool = self.gripper_pose()
+        T_world_depth = T_world_tool @ self.rig.T_tool_depth
+        rgb, depth_m = self._render(T_world_depth)
         detections = self._detect(rgb)
-        self.view = WristView(rgb, depth_m, detections, T_world_camera)
-        self._judge_seen(T_world_camera, depth_m)
-        return self.searcher.observe(depth_m, T_world_camera, detections=detections)
+        self._judge_seen(T_world_depth, depth_m)
+        depth_m = time_of_flight(depth_m, self.np_random, self.cfg)
+        T_believed = self.searcher.camera_pose(T_world_tool)
+        self.view = WristView(rgb, depth_m, detections, T_believed)
+        return self.searcher.observe(depth_m, T_believed, detections=detections)
 
-    def _render(self, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return render_rgbd(self.sim, T_world_camera, self.rig.depth)
+    def _render(self, T_world_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The RGB image and the ideal depth image, one render per camera, each with the renderer's near plane
+        (what lies closer than the sensor's minimum range must still hide what is behind it)."""
+        def render(T_world_camera, camera):
+            return render_rgbd(self.sim, T_world_camera, dataclasses.replace(camera, near_m=self.cfg.near_m))
+        rgb, depth_m = render(T_world_depth, self.rig.depth)
+        if not self.rig.one_camera:
+            rgb, _ = render(T_world_depth @ self.rig.T_depth_rgb, self.rig.rgb)
+        return rgb, depth_m
 
     def _detect(self, rgb: np.ndarray) -> np.ndarray:
         """The simulated detector of Sec. III-C: the colour detector's truth with the paper's noise."""
@@ -1861,6 +1948,7 @@ class ObjectFindingEnv(gym.Env):
         rng = self.np_random
         self._build_scene(rng)
         self._place_gripper(rng)
+        self.rig = mounted_rig(self.searcher.rig, rng, self.cfg)
         # the information rule: what the searcher is told of the target's size (the nominal cube's if absent)
         self.searcher.reset(self.target_area_m2 if self.cfg.target_size_known else self.cfg.nominal_target_area_m2)
         self.steps, self.episode_over = 0, False
@@ -2955,7 +3043,7 @@ def camera_json(camera: Camera) -> dict:
 
 def recording_meta(env: ObjectFindingEnv, agent_name: str, seed: int) -> dict:
     """Everything of a recording but its frames: the rig, the workspace and the told target size."""
-    rig, cfg = env.rig, env.cfg
+    rig, cfg = env.searcher.rig, env.cfg   # the calibration the robot believes
     half = cfg.workspace_m / 2
     return dict(format=RECORDING_FORMAT, source=f"objfind simulation: {agent_name} on {env.task}/{env.scene}",
                 task=env.task, settings={}, seed=seed, target_area_m2=env.searcher.target_area_m2,

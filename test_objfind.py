@@ -1978,3 +1978,75 @@ def test_the_arm_loop_works_in_any_base_frame(recording):
         assert np.allclose([a[n] for n in of.ACTION_NAMES], [b[n] for n in of.ACTION_NAMES], atol=1e-4)
         goal = T_base_workspace[:3, :3] @ [a["goal_x_m"], a["goal_y_m"], a["goal_z_m"]] + T_base_workspace[:3, 3]
         assert np.allclose(goal, [b["goal_x_m"], b["goal_y_m"], b["goal_z_m"]], atol=1e-3)
+
+
+# --- the rig's sensing -----------------------------------------------------------------------------
+
+def test_the_sensor_model_at_zero_is_the_ideal_sensor_and_draws_nothing():
+    cfg, rng = of.TASKS["ap"], np.random.default_rng(0)
+    before = rng.bit_generator.state
+    depth = np.random.default_rng(1).uniform(0.2, 0.8, (60, 80)).astype(np.float32)
+    assert of.time_of_flight(depth, rng, cfg) is depth
+    rig = of.wrist_rig(cfg)
+    assert of.mounted_rig(rig, rng, cfg) is rig and rig.one_camera
+    assert rng.bit_generator.state == before   # the episode's other draws are untouched
+
+
+def test_a_step_edge_through_the_time_of_flight_model():
+    """Flat sides keep their mean (the noise is unbiased); pixels along the edge are dropped or mixed."""
+    depth = np.full((100, 100), 0.4, np.float32)
+    depth[:, 50:] = 0.6
+    cfg = dataclasses.replace(of.TASKS["ap"], tof_noise_ratio=0.01, tof_missing_share=0.02, tof_edge_jump_m=0.02,
+                              tof_edge_drop_share=0.5)
+    out = of.time_of_flight(depth, np.random.default_rng(0), cfg)
+    left, right = out[:, :48], out[:, 52:]
+    assert abs(left[left > 0].mean() - 0.4) < 0.001 and abs(right[right > 0].mean() - 0.6) < 0.001
+    assert 0.01 < np.mean(left == 0) < 0.03                       # missing returns at their share
+    assert 0.003 < left[left > 0].std() < 0.005                   # 1 % of 0.4 m
+    edge_cfg = dataclasses.replace(cfg, tof_noise_ratio=0.0, tof_missing_share=0.0)
+    edge = of.time_of_flight(depth, np.random.default_rng(1), edge_cfg)[:, 49:51]
+    mixed = (edge > 0.4) & (edge < 0.6)
+    assert np.all((edge == 0) | mixed | np.isin(edge, (0.4, 0.6)))
+    assert 0.3 < np.mean(edge == 0) < 0.7 and mixed.mean() > 0.3   # half dropped, the rest fly
+    assert np.array_equal(of.time_of_flight(depth, np.random.default_rng(1), edge_cfg)[:, 52:], depth[:, 52:])
+
+
+def test_nothing_closer_than_the_minimum_range_returns():
+    depth = np.linspace(0.02, 0.5, 80 * 60, dtype=np.float32).reshape(60, 80)
+    cfg = dataclasses.replace(of.TASKS["ap"], depth_min_range_m=0.1, tof_noise_ratio=0.02)
+    out = of.time_of_flight(depth, np.random.default_rng(0), cfg)
+    assert np.all(out[out > 0] >= 0.1) and np.all(out[depth < 0.09] == 0)
+
+
+def test_the_hand_eye_error_has_the_stated_size_and_stays_for_the_episode():
+    cfg = dataclasses.replace(of.TASKS["ap"], hand_eye_error_m=0.003, hand_eye_error_rad=0.0175)
+    believed = of.wrist_rig(cfg)
+    error = np.linalg.inv(believed.T_tool_depth) @ of.mounted_rig(believed, np.random.default_rng(3), cfg).T_tool_depth
+    assert np.isclose(np.linalg.norm(error[:3, 3]), 0.003)
+    assert np.isclose(np.arccos((np.trace(error[:3, :3]) - 1) / 2), 0.0175)
+    env = of.ObjectFindingEnv("ap", "cubes", hand_eye_error_m=0.003, hand_eye_error_rad=0.0175)
+    env.reset(seed=0)
+    mounted = env.rig.T_tool_depth
+    env.step(np.array([0.5, 0, 0, 0, 0, -1.0]))
+    assert np.array_equal(env.rig.T_tool_depth, mounted) and not np.array_equal(mounted, env.searcher.rig.T_tool_depth)
+    assert np.array_equal(env.view.T_world_camera, env.searcher.camera_pose(env.gripper_pose()))   # what it believes
+    env.close()
+
+
+def test_detections_of_an_offset_rgb_camera_land_on_the_target_in_the_depth_image():
+    env = of.ObjectFindingEnv("ap", "cubes", rgb_offset_m=(0.03, 0.0, 0.0))
+    rig = env.rig
+    assert not rig.one_camera
+    for seed in range(30):
+        env.reset(seed=seed)
+        T_depth = env.gripper_pose() @ rig.T_tool_depth
+        truth = of.detect_target(of.render_rgbd(env.sim, T_depth, rig.depth)[0]) > 0.5   # the depth camera's own view
+        if truth.sum() > 40:
+            break
+    rgb, depth = env._render(T_depth)
+    from_rgb = of.detect_target(rgb)
+    mapped = rig.detections_in_depth_image(from_rgb, depth) > 0.5
+    naive = from_rgb > 0.5                         # the RGB image taken as if it were the depth camera's
+    iou = lambda a, b: (a & b).sum() / (a | b).sum()
+    assert iou(mapped, truth) > 0.7 and iou(mapped, truth) > iou(naive, truth) + 0.1
+    env.close()
