@@ -206,8 +206,8 @@ class Settings:
     drop_gap_m: float = 0.002           # objects start this far above their resting height
     no_room_drop_m: float = 0.1         # an object without a free spot falls from this height
     # scenes: piles (pile_positions)
-    pile_margin_m: float = 0.12         # pile centres at least this far from the walls ...
-    pile_min_apart_m: float = 0.2       # ... and from each other (but for pile_overlap_chance per draw)
+    pile_margin_ratio: float = 0.2      # pile centres at least this share of the workspace from the walls ...
+    pile_min_apart_ratio: float = 1 / 3 # ... and from each other (but for pile_overlap_chance per draw)
     pile_overlap_chance: float = 0.02   # so a crowded workspace still finds centres
     pile_layers: int = 7                # a pile is a square pyramid of spots, 7 x 7 at the bottom
     pile_spacing_ratio: float = 0.8     # spot spacing / the widest object's diameter: neighbours touch
@@ -291,7 +291,7 @@ class Settings:
                 ("num_piles", self.num_piles > self.min_objects, f"at most min_objects ({self.min_objects})"),
                 ("pile_overlap_chance", self.num_piles > 1 and self.pile_overlap_chance == 0,
                  "above 0 with several piles (pile centres are drawn until they fit)"),
-                ("pile_margin_m", self.num_piles and self.pile_margin_m >= half, f"under half of workspace_m ({half})"),
+                ("pile_margin_ratio", self.num_piles and self.pile_margin_ratio >= 0.5, "under 0.5 (of workspace_m)"),
                 ("object_size_m", largest_m > self.workspace_m / 3, "(at the largest variable_scale) at most a "
                  f"third of workspace_m ({self.workspace_m})"),
                 ("gripper_start_margin_m", self.gripper_start_margin_m >= half, f"under half of workspace_m ({half})"),
@@ -313,9 +313,15 @@ TASKS = {
     "ap": Settings(),
     "ap-large": Settings(min_objects=10, max_objects=40, workspace_m=1.2, horizon=500),
     "ip": Settings(min_objects=15, max_objects=75, num_piles=3, exploration_ratio=0.25),
+    # Table I's real-world columns; GNBV samples 30 poses there (Sec. IV-B)
+    "ap-real": Settings(min_objects=15, max_objects=30, no_target_prob=0.0, workspace_m=0.33, horizon=50,
+                        gnbv_samples=30),
+    "ip-real": Settings(min_objects=15, max_objects=30, num_piles=4, no_target_prob=0.0, exploration_ratio=0.1,
+                        workspace_m=0.33, horizon=50, gnbv_samples=30),
 }
 
-SCENES = ("cubes", "fixed-primitives", "variable-primitives", "random-shapes", "object-models")
+TABLE_SCENES = ("cubes", "fixed-primitives", "variable-primitives", "random-shapes", "object-models")   # Table II
+SCENES = TABLE_SCENES + ("cubes-and-cuboids",)   # and the real experiments' scenes (Sec. IV-D)
 
 
 @dataclass(frozen=True)
@@ -1591,6 +1597,8 @@ def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) 
     kind = "cube" if scene == "cubes" else None
     if scene in ("fixed-primitives", "variable-primitives"):
         kind = ("cube", "cuboid", "cylinder", "prism")[rng.integers(4)]
+    elif scene == "cubes-and-cuboids":
+        kind = ("cube", "cuboid")[rng.integers(2)]
     if kind is not None:
         scale = rng.uniform(*cfg.variable_scale) if scene == "variable-primitives" else 1.0
         h = cfg.object_size_m * scale / 2
@@ -1696,8 +1704,9 @@ def pile_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> li
     half = cfg.workspace_m / 2
     centres = []
     while len(centres) < cfg.num_piles:
-        c = rng.uniform(-half + cfg.pile_margin_m, half - cfg.pile_margin_m, 2)
-        apart = all(np.linalg.norm(c - q) > cfg.pile_min_apart_m for q in centres)
+        margin_m = cfg.pile_margin_ratio * cfg.workspace_m
+        c = rng.uniform(-half + margin_m, half - margin_m, 2)
+        apart = all(np.linalg.norm(c - q) > cfg.pile_min_apart_ratio * cfg.workspace_m for q in centres)
         if apart or rng.random() < cfg.pile_overlap_chance:
             centres.append(c)
     share = np.array_split(np.arange(len(objects)), cfg.num_piles)
@@ -2061,7 +2070,8 @@ class ObjectFindingEnv(gym.Env):
 
 # gym.make("objfind/ActivePerception-v0", scene="cubes"): the three Table I presets as Gymnasium ids.
 GYM_IDS = {"objfind/ActivePerception-v0": "ap", "objfind/ActivePerceptionLarge-v0": "ap-large",
-           "objfind/InteractivePerception-v0": "ip"}
+           "objfind/InteractivePerception-v0": "ip", "objfind/ActivePerceptionReal-v0": "ap-real",
+           "objfind/InteractivePerceptionReal-v0": "ip-real"}
 for _id, _task in GYM_IDS.items():
     if _id not in gym.registry:
         gym.register(id=_id, entry_point="objfind:ObjectFindingEnv", kwargs=dict(task=_task))
@@ -2860,7 +2870,7 @@ def stored_cell(path: Path, seeds: list, origin: dict) -> list | None:
 def table_markdown(cells: dict, episodes: int, versions: set) -> str:
     """Table II: ours ("success / steps") beside the paper's, per agent and scene kind, and the share of
     no-target scenes each agent ended correctly (pooled over its cells; the paper gives it in the text)."""
-    columns = [("ap", "cubes"), ("ap-large", "cubes")] + [("ap", scene) for scene in SCENES[1:]]
+    columns = [("ap", "cubes"), ("ap-large", "cubes")] + [("ap", scene) for scene in TABLE_SCENES[1:]]
     header = ["agent", "cubes", "cubes, large", "fixed prim.", "variable prim.", "random shapes", "object models",
               "no target"]
     lines = [f"Success % / average steps over {episodes} paired episodes per cell; the paper's below ours. "
@@ -3692,8 +3702,8 @@ def add_agent_args(command, default_agent: str | None) -> None:
     """The flags that pick what runs: agent, task, scene, weights (demo and eval)."""
     command.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default=default_agent,
                          help="random, scripted, the baselines gnbv and ges, or the learned a3de and i3de")
-    command.add_argument("--task", choices=list(TASKS), help="Table I preset: ap (active), ap-large, ip "
-                         "(interactive, piles); default ip for ges and i3de, ap otherwise")
+    command.add_argument("--task", choices=list(TASKS), help="Table I preset: ap (active), ap-large, ip (interactive, piles), and the "
+                         "real-world ap-real and ip-real; default ip for ges and i3de, ap otherwise")
     command.add_argument("--scene", choices=SCENES, help="scene kind (default cubes)")
     command.add_argument("--weights", help="a learned agent's checkpoint (default: weights/AGENT.pt, "
                          "AGENT-large.pt on ap-large)")

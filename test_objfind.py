@@ -284,7 +284,7 @@ def scene_positions(s, seed=4):
 
 def test_every_scene_setting_changes_the_scene():
     """A student who edits a Settings field sees the scene change: no hidden copy of it in the builder."""
-    piles = dict(num_piles=2, pile_margin_m=0.2, pile_layers=5, pile_spacing_ratio=1.2, pile_layer_cost=2.0,
+    piles = dict(num_piles=2, pile_margin_ratio=0.3, pile_min_apart_ratio=0.1, pile_layers=5, pile_spacing_ratio=1.2, pile_layer_cost=2.0,
                  pile_spot_noise=0.5, pile_jitter_ratio=0.3, pile_layer_gap_m=0.03, drop_gap_m=0.02,
                  settle_pile_substeps=16, settle_speed=0.5, object_size_m=0.05, object_mass_kg=0.3,
                  object_friction=0.2, wall_height_m=0.3)
@@ -1648,7 +1648,7 @@ def test_runs_into_different_run_folders_go_on_side_by_side(tmp_path):
 
 
 @pytest.mark.parametrize("overrides, field", [
-    (dict(min_objects=30, max_objects=5), "min_objects"), (dict(workspace_m=0.2), "pile_margin_m"),
+    (dict(min_objects=30, max_objects=5), "min_objects"), (dict(pile_margin_ratio=0.5), "pile_margin_ratio"),
     (dict(num_piles=3, min_objects=2), "num_piles"), (dict(horizon=0), "horizon"),
     (dict(voxels_per_side=2.5), "voxels_per_side"), (dict(trunc_m=float("nan")), "trunc_m"),
     (dict(num_piles=3, pile_overlap_chance=0.0), "pile_overlap_chance"), (dict(variable_scale=(2.0, 1.0)), "variable_scale"),
@@ -2049,4 +2049,47 @@ def test_detections_of_an_offset_rgb_camera_land_on_the_target_in_the_depth_imag
     naive = from_rgb > 0.5                         # the RGB image taken as if it were the depth camera's
     iou = lambda a, b: (a & b).sum() / (a | b).sum()
     assert iou(mapped, truth) > 0.7 and iou(mapped, truth) > iou(naive, truth) + 0.1
+    env.close()
+
+
+# --- the real setup's presets ------------------------------------------------------------------------
+
+def scene_fingerprint(task: str, scene: str, seeds) -> str:
+    """16 hex digits of every object's resting pose over some seeds: a scene's identity, bit for bit."""
+    digest = of.hashlib.sha256()
+    env = of.ObjectFindingEnv(task, scene)
+    for seed in seeds:
+        env.reset(seed=seed)
+        for o in env.objects:
+            position, orientation = env.sim.getBasePositionAndOrientation(o.body)
+            digest.update(np.array(position + orientation).tobytes())
+    env.close()
+    return digest.hexdigest()[:16]
+
+
+@pytest.mark.parametrize("task, scene, fingerprint", [
+    ("ap", "cubes", "0e89e09a95557721"), ("ip", "cubes", "7b74256a0116f4e9"),
+    ("ip", "variable-primitives", "ba9cece349cfecda"), ("ap-large", "cubes", "0ec7e5e3077c9bc4")])
+def test_scene_generation_for_small_workspaces_leaves_the_simulation_presets_exactly(task, scene, fingerprint):
+    """Pile margins and spacing scale with the workspace; at 0.6 m and 1.2 m the scenes are those of world 3."""
+    assert scene_fingerprint(task, scene, range(3)) == fingerprint
+
+
+@pytest.mark.parametrize("task", ["ap-real", "ip-real"])
+def test_the_real_presets_build_table_one_scenes_inside_the_small_floor(task):
+    env = of.ObjectFindingEnv(task, "cubes-and-cuboids")
+    cfg, half = env.cfg, env.cfg.workspace_m / 2
+    assert (cfg.workspace_m, cfg.horizon, cfg.no_target_prob, cfg.gnbv_samples) == (0.33, 50, 0.0, 30)
+    assert (cfg.min_objects, cfg.max_objects, cfg.num_piles) == (15, 30, 4 if task == "ip-real" else 0)
+    for seed in range(3):
+        env.reset(seed=seed)
+        assert 15 <= len(env.objects) <= 30 and env.target_present
+        assert env.heaped == (task == "ip-real" and env.heaped)
+        for o in env.objects:
+            (x, y, z), _ = env.sim.getBasePositionAndOrientation(o.body)
+            assert abs(x) < half and abs(y) < half and 0 < z < cfg.wall_height_m
+            assert np.linalg.norm(env.sim.getBaseVelocity(o.body)[0]) < 2 * cfg.settle_speed   # at rest
+    if task == "ip-real":   # 30 objects' drop spots over the four piles: all inside the walls
+        spots = np.array([xyz[:2] for xyz, _ in of.pile_positions([env.objects[0]] * 30, cfg, np.random.default_rng(0))])
+        assert np.all(np.abs(spots) < half - env.objects[0].radius_m / 2)
     env.close()
