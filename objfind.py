@@ -131,6 +131,9 @@ class Settings:
     # Sec. IV-A
     trunc_m: float = 0.04               # TSDF truncation distance
     voxels_per_side: int = 100          # "resolution of 100 voxels per side"
+    state_voxel_m: float = 0.006        # the state's detection sum and the seen target area are counted in cells of
+                                        # this size (the policies' training resolution: 0.6 m / 100), whatever
+                                        # the volume's voxel size, so a finer volume gives the same state and share
     max_weight: float = 2.0             # Sec. III-B.1: max TSDF weight, fast forgetting after pushes
     crop_m: float = 1.2                 # state crop: square around the end-effector
     max_step_m: float = 0.06            # max translation per step
@@ -311,7 +314,7 @@ class Settings:
 
 TASKS = {
     "ap": Settings(),
-    "ap-large": Settings(min_objects=10, max_objects=40, workspace_m=1.2, horizon=500),
+    "ap-large": Settings(min_objects=10, max_objects=40, workspace_m=1.2, horizon=500, state_voxel_m=0.012),
     "ip": Settings(min_objects=15, max_objects=75, num_piles=3, exploration_ratio=0.25),
     # Table I's real-world columns; GNBV samples 30 poses there (Sec. IV-B)
     "ap-real": Settings(min_objects=15, max_objects=30, no_target_prob=0.0, workspace_m=0.33, horizon=50,
@@ -432,9 +435,19 @@ class TSDFVolume:
         self.tsdf = np.zeros(self.shape, np.float32)        # (nx, ny, nz) signed distance / trunc
         self.weight = np.zeros(self.shape, np.float32)      # (nx, ny, nz) observations, at most max_weight
         self.detections = np.zeros(self.shape, np.float32)  # (nx, ny, nz) detection score near surfaces
-        self.target_area = np.zeros(self.shape, np.float32)  # (nx, ny, nz) m^2 of target surface seen
         self.detection_threshold, self.seen_min_cos = cfg.detection_threshold, cfg.seen_min_cos
         self.outline_pixel_share = cfg.outline_pixel_share
+        # The target surface seen is kept in cells of state_voxel_m whatever the voxel size: two views' samples
+        # of one surface then share their cells, and the max over views counts the surface once.
+        self.area_cell_m = cfg.state_voxel_m
+        extent = np.array(self.shape) * self.voxel_m
+        area_shape = tuple(int(np.ceil(e / self.area_cell_m - 1e-9)) for e in extent)
+        self.target_area = np.zeros(area_shape, np.float32)  # (cells) m^2 of target surface seen
+        self.voxel_of_cell = None        # the same grid, or the voxel holding each cell's centre (flat indices)
+        if area_shape != self.shape:
+            centres = np.meshgrid(*[(np.arange(n) + 0.5) * self.area_cell_m for n in area_shape], indexing="ij")
+            voxels = [np.minimum(np.floor(c / self.voxel_m).astype(np.int64), n - 1) for c, n in zip(centres, self.shape)]
+            self.voxel_of_cell = np.ravel_multi_index(tuple(v.reshape(-1) for v in voxels), self.shape)
         # Voxel centres are separable, so we keep three 1-D axes instead of an (N, 3) array: camera
         # coordinates of a sub-box then come from broadcasting, never from a matrix product per voxel.
         self.axes = [(np.arange(n, dtype=np.float32) + 0.5) * self.voxel_m + o
@@ -553,13 +566,20 @@ class TSDFVolume:
         return np.concatenate(flats), np.concatenate(sdfs), np.concatenate(pixels)
 
     def _mark_target_surface(self, depth_m, detections, K, T_world_camera, flat, det_new) -> None:
-        """Keep `target_area`: per voxel, the most target surface (m^2) one view saw in it, from the detected
+        """Keep `target_area`: per cell, the most target surface (m^2) one view saw in it, from the detected
         pixels back-projected with the area each covers. The detection band itself cannot say how much of a small
-        target was seen (it is as thick as a cube, half of it carved by the next view). A voxel's area is
-        cleared when its detection falls to the threshold (carved, or forgotten after the target was pushed)."""
+        target was seen (it is as thick as a cube, half of it carved by the next view). A cell's area is
+        cleared when the detections of its voxels fall to the threshold (carved, or forgotten after a push)."""
         area_seen = self.target_area.reshape(-1)
         if area_seen.any():   # area lives only while the channel still holds a confident detection
-            area_seen[flat] *= det_new > self.detection_threshold
+            if self.voxel_of_cell is None:
+                area_seen[flat] *= det_new > self.detection_threshold
+            else:   # a cell is judged by the voxel at its centre, when this view updated it
+                cells = np.flatnonzero(area_seen)
+                voxels, updated = self.voxel_of_cell[cells], np.zeros(self.detections.size, bool)
+                updated[flat] = True
+                faded = updated[voxels] & (self.detections.reshape(-1)[voxels] <= self.detection_threshold)
+                area_seen[cells[faded]] = 0.0
         detected = (detections > self.detection_threshold) & (depth_m > 0)
         if not detected.any():
             return
@@ -583,9 +603,9 @@ class TSDFVolume:
         sv = np.repeat(v, 4) + np.tile([0.25, 0.25, 0.75, 0.75], len(v))
         camera = np.stack([(su - K[0, 2]) / K[0, 0] * z, (sv - K[1, 2]) / K[1, 1] * z, z], 1)
         world = camera @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
-        index = np.floor((world - self.origin) / self.voxel_m).astype(np.int64)
-        inside = np.all((index >= 0) & (index < self.shape), axis=1)
-        flat_hit = np.ravel_multi_index(tuple(index[inside].T), self.shape)
+        index = np.floor((world - self.origin) / self.area_cell_m).astype(np.int64)
+        inside = np.all((index >= 0) & (index < self.target_area.shape), axis=1)
+        flat_hit = np.ravel_multi_index(tuple(index[inside].T), self.target_area.shape)
         area = np.repeat(pixel_area[v, u], 4)[inside] / 4
         voxels, which = np.unique(flat_hit, return_inverse=True)
         area_seen[voxels] = np.maximum(area_seen[voxels], np.bincount(which, weights=area))
@@ -625,10 +645,12 @@ def column_bins(u: np.ndarray, v: np.ndarray, crop_m: float) -> np.ndarray:
 
 
 def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, finger_z: float,
-                 crop_m: float, detection_scale: float) -> np.ndarray:
+                 crop_m: float, detection_scale: float, state_voxel_m: float) -> np.ndarray:
     """Fig. 2's state, (71,) float32: TSDF above / below the fingertips, then detections above / below, summed
     along z and pooled into 17 bins around the gripper, each pair normalised by its own sum; then the TSDF sum
-    per voxel, the detection sum in units of `detection_scale` (a whole target's), and the roll."""
+    per voxel, the detection sum in units of `detection_scale` (a whole target's), and the roll. The detection
+    band is trunc_m thick whatever the voxel size, so its voxel count grows as 1 / voxel_m: the sum is counted
+    in voxels of state_voxel_m, and a scene fused at any resolution gives about the same state."""
     nx, ny, nz = volume.shape
     k = int(np.clip(round(finger_z / volume.voxel_m), 0, nz))
     # Summing each column above and below the fingertips is one matrix product with a (nz, 2) mask.
@@ -646,7 +668,7 @@ def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, fing
     tsdf_sum, det_sum = pooled[:2].sum(), pooled[2:].sum()
     pooled[:2] /= tsdf_sum if abs(tsdf_sum) > 1e-6 else 1.0
     pooled[2:] /= det_sum if abs(det_sum) > 1e-6 else 1.0
-    sums = [tsdf_sum / volume.tsdf.size, det_sum / detection_scale]
+    sums = [tsdf_sum / volume.tsdf.size, det_sum / detection_scale * (volume.voxel_m / state_voxel_m)]
     return np.concatenate([pooled.reshape(-1), sums, [ee_roll]]).astype(np.float32)
 
 
@@ -773,7 +795,7 @@ class Searcher:
     def __init__(self, cfg: Settings, rig: Rig | None = None):
         self.rig = rig or wrist_rig(cfg)
         self.volume = TSDFVolume(cfg)
-        self.crop_m, self.seen_threshold = cfg.crop_m, cfg.seen_threshold
+        self.crop_m, self.seen_threshold, self.state_voxel_m = cfg.crop_m, cfg.seen_threshold, cfg.state_voxel_m
         self.detection_threshold = cfg.detection_threshold
         self.workspace_m, self.ceiling_m = cfg.workspace_m, cfg.ceiling_m           # the box it moves in
         self.max_step_m, self.max_turn_rad = cfg.max_step_m, cfg.max_turn_rad       # one step's reach
@@ -809,7 +831,8 @@ class Searcher:
         if self._state_of[0] != key:
             yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
             self._state_of = (key, encode_state(self.volume, T_world_tool[:3, 3], yaw, roll, T_world_tool[2, 3],
-                                                self.crop_m, self.target_area_m2 / self.volume.voxel_m ** 2))
+                                                self.crop_m, self.target_area_m2 / self.volume.voxel_m ** 2,
+                                                self.state_voxel_m))
         return self._state_of[1].copy()
 
     def perceived_target_share(self) -> float:
