@@ -312,15 +312,25 @@ class Settings:
 
 
 
+# The paper's wrist rig (Sec. IV): a CamBoard pico flexx time-of-flight camera beside a Chameleon 3 RGB
+# camera, joined to the gripper by hand-eye calibration. Sources and assumptions: README, "Choices".
+RIG_SENSING = dict(
+    depth_width=224, depth_height=171, depth_fov_y_deg=45.0,   # pico flexx datasheet: 224 x 171 px, 62 x 45 deg
+    depth_min_range_m=0.1,                                     # datasheet: 0.1-4 m
+    tof_noise_ratio=0.01,                                      # datasheet: <= 1 % of the distance
+    tof_missing_share=0.02, tof_edge_jump_m=0.02, tof_edge_drop_share=0.5,   # assumed, README
+    rgb_offset_m=(0.03, 0.0, 0.0),                             # assumed: the two cameras side by side
+    hand_eye_error_m=0.003, hand_eye_error_rad=0.0175)         # assumed: 3 mm and 1 degree
+
 TASKS = {
     "ap": Settings(),
     "ap-large": Settings(min_objects=10, max_objects=40, workspace_m=1.2, horizon=500, state_voxel_m=0.012),
     "ip": Settings(min_objects=15, max_objects=75, num_piles=3, exploration_ratio=0.25),
-    # Table I's real-world columns; GNBV samples 30 poses there (Sec. IV-B)
+    # Table I's real-world columns with the rig's sensing; GNBV samples 30 poses there (Sec. IV-B)
     "ap-real": Settings(min_objects=15, max_objects=30, no_target_prob=0.0, workspace_m=0.33, horizon=50,
-                        gnbv_samples=30),
+                        gnbv_samples=30, **RIG_SENSING),
     "ip-real": Settings(min_objects=15, max_objects=30, num_piles=4, no_target_prob=0.0, exploration_ratio=0.1,
-                        workspace_m=0.33, horizon=50, gnbv_samples=30),
+                        workspace_m=0.33, horizon=50, gnbv_samples=30, **RIG_SENSING),
 }
 
 TABLE_SCENES = ("cubes", "fixed-primitives", "variable-primitives", "random-shapes", "object-models")   # Table II
