@@ -74,9 +74,11 @@ def test_presets_follow_table_one():
     assert (ap.min_objects, ap.max_objects, ap.num_piles, ap.workspace_m, ap.horizon) == (5, 25, 0, 0.6, 130)
     assert (large.min_objects, large.max_objects, large.workspace_m, large.horizon) == (10, 40, 1.2, 500)
     assert (ip.min_objects, ip.max_objects, ip.num_piles, ip.exploration_ratio) == (15, 75, 3, 0.25)
-    for s in of.TASKS.values():
+    real_ap, real_ip = of.TASKS["ap-real"], of.TASKS["ip-real"]
+    assert (real_ip.num_piles, real_ip.exploration_ratio, real_ap.num_piles) == (4, 0.1, 0)
+    for name, s in of.TASKS.items():
         paper = (s.no_target_prob, s.trunc_m, s.max_weight, s.max_step_m, s.max_turn_rad, s.detection_reward)
-        assert paper == (0.1, 0.04, 2, 0.06, 0.15, 150)
+        assert paper == (0.0 if name.endswith("-real") else 0.1, 0.04, 2, 0.06, 0.15, 150)
     with pytest.raises(dataclasses.FrozenInstanceError):
         ap.horizon = 10
 
