@@ -3013,6 +3013,12 @@ def demo_frame(env: ObjectFindingEnv, state: np.ndarray, text: str) -> np.ndarra
                            volume_panel(searcher, env.gripper_pose()), bins_panel(state)], axis=1)
 
 
+def write_contact_sheet(path: Path, frames: list) -> None:
+    """Four moments of an episode (first, last and two between), stacked into one PNG."""
+    picks = sorted(set(np.linspace(0, len(frames) - 1, 4).round().astype(int)))
+    write_image(path, np.concatenate([frames[i] for i in picks], axis=0))
+
+
 def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
              policy: dict | None = None, record: Path | None = None) -> tuple[Path, Path, dict]:
     """One episode to an MP4 (every step) and a PNG contact sheet (four moments of it); a learned agent
@@ -3041,9 +3047,8 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
     if record is not None:
         write_recording(record, meta, views, actions)
     stem = writable_folder(out_dir) / f"demo-{task}-{scene}-{agent_name}"
-    picks = sorted(set(np.linspace(0, len(frames) - 1, 4).round().astype(int)))
     png, mp4 = stem.with_suffix(".png"), stem.with_suffix(".mp4")
-    write_image(png, np.concatenate([frames[i] for i in picks], axis=0))
+    write_contact_sheet(png, frames)
 
     def write_video(tmp):
         h, w = frames[0].shape[:2]
@@ -3578,8 +3583,7 @@ def cmd_replay(args) -> int:
     out = writable_folder(Path(args.out))
     rows, states, pictures = replay(cfg, rig, meta, frames, args.agent, policy, args.seed)
     stem = out / f"replay-{Path(args.recording).resolve().name}-{args.agent}"
-    picks = sorted(set(np.linspace(0, len(pictures) - 1, 4).round().astype(int)))
-    write_image(stem.with_suffix(".png"), np.concatenate([pictures[i] for i in picks], axis=0))
+    write_contact_sheet(stem.with_suffix(".png"), pictures)
     write_csv(rows, stem.with_suffix(".csv"))
     ending = "stopped" if rows[-1]["stop"] else "had not stopped when the frames ended"
     print(f"{args.agent} on {len(rows)} of {len(frames)} frames of {args.recording}: {ending}")
