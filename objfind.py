@@ -179,6 +179,9 @@ class Settings:
     tof_edge_drop_share: float = 0.0    # edge: the camera drops this share of them, the rest mix both depths
     hand_eye_error_m: float = 0.0       # the cameras' true pose on the gripper is off by this distance ...
     hand_eye_error_rad: float = 0.0     # ... and angle, in directions drawn per episode
+    sensor_error_scale: tuple = (1.0, 1.0)   # domain randomisation (training): each episode multiplies the
+                                        # depth noise, missing returns and hand-eye error by a factor drawn
+                                        # uniformly from this range; (1, 1) draws nothing
     # gripper
     gripper_mass_kg: float = 0.5
     gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper
@@ -257,6 +260,8 @@ class Settings:
         """Surface of the nominal target, a cube of side object_size_m."""
         return 6 * self.object_size_m ** 2
 
+    scaled_sensor_errors: ClassVar[tuple] = ("tof_noise_ratio", "tof_missing_share", "hand_eye_error_m",
+                                             "hand_eye_error_rad")   # what sensor_error_scale multiplies
     default_limit: ClassVar[tuple] = (lambda v: min(np.atleast_1d(v)) >= 0, "at least 0")
     limits: ClassVar[dict] = {   # ranges beyond "at least 0"; upper bounds keep memory and time finite
         "min_objects": at_least(1), "max_objects": at_least(1, 500), "num_piles": at_least(0, 10),
@@ -273,6 +278,7 @@ class Settings:
         "rgb_offset_m": (lambda v: len(v) == 3 and max(map(abs, v)) <= 0.2, "(x, y, z), each within 0.2 m"),
         "tof_noise_ratio": at_least(0, 0.2), "tof_missing_share": at_least(0, 1), "tof_edge_drop_share": at_least(0, 1),
         "hand_eye_error_m": at_least(0, 0.05), "hand_eye_error_rad": at_least(0, 0.2),
+        "sensor_error_scale": (lambda v: len(v) == 2 and 0 <= v[0] <= v[1] <= 4, "(low, high), 0 <= low <= high <= 4"),
         "near_m": above(0), "gripper_force_n": above(0), "max_roll_rad": at_least(0, 1.5), "ceiling_ratio": above(0),
         "gripper_start_tries": at_least(1), "reach_tol_m": above(0), "reach_tol_rad": above(0), "stall_m": above(0),
         "physics_hz": at_least(1), "new_scene_hz": at_least(1), "solver_iterations": at_least(1),
@@ -306,7 +312,10 @@ class Settings:
                 ("depth_width", self.depth_width and not (self.depth_height and self.depth_fov_y_deg),
                  "0, or given with depth_height and depth_fov_y_deg (a separate depth camera)"),
                 ("depth_min_range_m", self.depth_min_range_m >= self.far_m,
-                 f"under the far plane (2 x workspace_m = {self.far_m:g})")):
+                 f"under the far plane (2 x workspace_m = {self.far_m:g})"),
+                ("sensor_error_scale", not all(self.limits[name][0](getattr(self, name) * self.sensor_error_scale[1])
+                                               for name in self.scaled_sensor_errors),
+                 f"small enough that its high end keeps every one of {', '.join(self.scaled_sensor_errors)} in range")):
             if broken:
                 raise ValueError(f"{name}={getattr(self, name)!r}: it must be {must}")
 
@@ -361,6 +370,8 @@ class PPOSettings:
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
 
+    scaled_sensor_errors: ClassVar[tuple] = ("tof_noise_ratio", "tof_missing_share", "hand_eye_error_m",
+                                             "hand_eye_error_rad")   # what sensor_error_scale multiplies
     default_limit: ClassVar[tuple] = (lambda v: True, "finite")
     limits: ClassVar[dict] = {   # a range for some fields, as (test, meaning); every field must be finite
         "hidden": at_least(1, 1024), "batch_steps": at_least(1, 1_000_000), "epochs": at_least(1, 1000),
@@ -1351,6 +1362,15 @@ def time_of_flight(depth_m: np.ndarray, rng: np.random.Generator, cfg: Settings)
     return out
 
 
+def episode_sensing(cfg: Settings, rng: np.random.Generator) -> Settings:
+    """The sensor errors of one episode: cfg's, or with sensor_error_scale a range, each error times a factor
+    drawn from it (domain randomisation); (1, 1) is cfg itself, and draws nothing."""
+    if cfg.sensor_error_scale == (1.0, 1.0):
+        return cfg
+    factor = rng.uniform(*cfg.sensor_error_scale)
+    return dataclasses.replace(cfg, **{name: getattr(cfg, name) * factor for name in cfg.scaled_sensor_errors})
+
+
 def mounted_rig(believed: Rig, rng: np.random.Generator, cfg: Settings) -> Rig:
     """The rig as it truly sits on the gripper: the robot's calibration off by hand_eye_error_m and
     hand_eye_error_rad in random directions (a fixed error for an episode). No error: the same rig, no draws."""
@@ -1909,7 +1929,7 @@ class ObjectFindingEnv(gym.Env):
         rgb, depth_m = self._render(T_world_depth)
         detections = self._detect(rgb)
         self._judge_seen(T_world_depth, depth_m)
-        depth_m = time_of_flight(depth_m, self.np_random, self.cfg)
+        depth_m = time_of_flight(depth_m, self.np_random, self.sensing)
         T_believed = self.searcher.camera_pose(T_world_tool)
         self.view = WristView(rgb, depth_m, detections, T_believed)
         return self.searcher.observe(depth_m, T_believed, detections=detections)
@@ -1990,7 +2010,8 @@ class ObjectFindingEnv(gym.Env):
         rng = self.np_random
         self._build_scene(rng)
         self._place_gripper(rng)
-        self.rig = mounted_rig(self.searcher.rig, rng, self.cfg)
+        self.sensing = episode_sensing(self.cfg, rng)   # the sensor errors this episode's world applies
+        self.rig = mounted_rig(self.searcher.rig, rng, self.sensing)
         # the information rule: what the searcher is told of the target's size (the nominal cube's if absent)
         self.searcher.reset(self.target_area_m2 if self.cfg.target_size_known else self.cfg.nominal_target_area_m2)
         self.steps, self.episode_over = 0, False
@@ -2243,7 +2264,8 @@ RUN_FIELDS = dict(   # what a checkpoint of a run adds (the first five always), 
     wall_s=lambda v: isinstance(v, (int, float)) and np.isfinite(v) and v >= 0,
     seed=lambda v: isinstance(v, int) and 0 <= v <= MAX_SEED,
     rollout_streams=lambda v: isinstance(v, int) and 1 <= v <= MAX_STREAMS,
-    task=lambda v: v in TASKS, scene=lambda v: v in SCENES)
+    task=lambda v: v in TASKS, scene=lambda v: v in SCENES,
+    world=lambda v: isinstance(v, dict) and set(v) <= {f.name for f in dataclasses.fields(Settings)})
 MAX_CHECKPOINT_BYTES = 64 * 2 ** 20   # the largest network PPOSettings allows, with Adam's state, is about 27 MB
 MAX_STREAMS = 4096                    # rollout streams of a run
 
@@ -3546,6 +3568,21 @@ def ppo_setting_arg(text: str) -> tuple[str, float]:
     return name, typed
 
 
+def world_setting_arg(text: str) -> tuple:
+    """NAME=VALUE for one Settings field of the training world, e.g. tof_noise_ratio=0.01 or
+    sensor_error_scale=0,2 (a tuple as comma-separated numbers); its range is checked with the task's."""
+    name, _, value = text.partition("=")
+    kinds = {f.name: f.type if isinstance(f.type, str) else f.type.__name__ for f in dataclasses.fields(Settings)}
+    if name not in kinds:
+        raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE with NAME a Settings field")
+    try:
+        typed = (tuple(float(v) for v in value.split(",")) if kinds[name] == "tuple" else
+                 parse_bool(value) if kinds[name] == "bool" else int(value) if kinds[name] == "int" else float(value))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{value!r} is not a {kinds[name]}") from None
+    return name, typed
+
+
 INTERACTIVE_AGENTS = ("ges", "i3de")   # without --task these run on ip, the rest on ap
 
 
@@ -3674,9 +3711,9 @@ def cmd_eval(args) -> int:
 def cmd_train(args) -> int:
     run = None
     if args.resume:
-        if args.set or args.init or args.fresh_terminate or args.seed is not None:
-            raise UsageError("--set, --seed, --init and --fresh-terminate start a new run; a resumed run keeps "
-                             "its own")
+        if args.set or args.world or args.init or args.fresh_terminate or args.seed is not None:
+            raise UsageError("--set, --world, --seed, --init and --fresh-terminate start a new run; a resumed run "
+                             "keeps its own")
         out = Path(args.out or Path("runs") / f"{args.task or 'ap'}-{args.scene or 'cubes'}")
         if not (out / "checkpoint.pt").exists():
             raise UsageError(f"--resume: no checkpoint in {str(out)!r}")
@@ -3694,16 +3731,21 @@ def cmd_train(args) -> int:
             raise UsageError(f"{str(out)!r} already holds a run: add --resume to continue it, or pick another --out")
         if args.fresh_terminate and not args.init:
             raise UsageError("--fresh-terminate needs --init")
+    world = run.get("world", {}) if run else dict(args.world or [])
+    try:
+        dataclasses.replace(TASKS[args.task], **world)
+    except ValueError as error:
+        raise UsageError(f"--world: {error}") from None
     writable_folder(out)
     init = read_checkpoint(Path(args.init)) if args.init else None
-    meta = dict(task=args.task, scene=args.scene)
+    meta = dict(task=args.task, scene=args.scene, **({"world": world} if world else {}))
     if init is not None:
         meta["init"] = (f"{Path(args.init).name} ({init.get('task', '?')}/{init.get('scene', '?')}, update "
                         f"{init.get('update', '?')}){', terminate reset' if args.fresh_terminate else ''}")
     resume = (f"python objfind.py train --resume --out {shlex.quote(str(out))} --steps {args.steps} "
               f"--workers {args.workers}")
     try:
-        result = train(functools.partial(ObjectFindingEnv, args.task, args.scene), out, args.steps,
+        result = train(functools.partial(ObjectFindingEnv, args.task, args.scene, **world), out, args.steps,
                        ppo_settings(dict(args.set or [])), workers=args.workers, seed=args.seed or 0,
                        resume=run, meta=meta, init=init, fresh_terminate=args.fresh_terminate)
     except TrainingInterrupted as stop:
@@ -3789,6 +3831,9 @@ def build_parser() -> ArgumentParser:
                           help="continue the run in --out from its checkpoint, with the settings it started with")
     training.add_argument("--set", type=ppo_setting_arg, action="append", metavar="NAME=VALUE",
                           help="change a PPOSettings field for a new run (repeatable), e.g. entropy_coef=0.003")
+    training.add_argument("--world", type=world_setting_arg, action="append", metavar="NAME=VALUE",
+                          help="change a Settings field of the training world for a new run (repeatable), e.g. "
+                               "tof_noise_ratio=0.01 or sensor_error_scale=0,2 (weights/README.md)")
     training.add_argument("--init", help="warm-start a new run from this checkpoint's policy (I3DE from A3DE)")
     training.add_argument("--fresh-terminate", action="store_true",
                           help="with --init: keep the moves and the critic, learn when to terminate afresh")
