@@ -2956,6 +2956,107 @@ def table_markdown(cells: dict, episodes: int, versions: set) -> str:
 
 
 # ================================================================================================
+# Sensor study (Sec. III-D): success and steps as the depth camera's errors grow, on the 0.6 m presets.
+# ================================================================================================
+
+RIG_ERRORS = {k: RIG_SENSING[k] for k in ("tof_noise_ratio", "tof_missing_share", "tof_edge_jump_m",
+                                          "tof_edge_drop_share", "hand_eye_error_m", "hand_eye_error_rad",
+                                          "area_median_px")}   # the rig's errors, on the presets' own camera
+SENSOR_SWEEPS = (   # (name, what one level sets, four levels: none, the rig's, twice and four times the rig's)
+    ("depth noise", "% of the distance", lambda x: dict(tof_noise_ratio=x / 100), (0, 1, 2, 4)),
+    ("missing returns", "% of the pixels", lambda x: dict(tof_missing_share=x / 100), (0, 2, 10, 30)),
+    ("hand-eye error", "mm and x/3 degrees", lambda x: dict(hand_eye_error_m=x / 1000,
+                                                           hand_eye_error_rad=np.radians(x / 3)), (0, 3, 6, 12)),
+)
+SENSOR_AGENTS = (("a3de", "ap", None), ("i3de", "ip", None))   # (agent, task, weights/ file or the shipped)
+SENSOR_BASELINES = (("gnbv", "ap"), ("ges", "ip"))               # at the ideal sensor and at the rig's errors
+
+
+def sensor_points() -> list:
+    """Every (sweep, level, overrides) of the study; level 0 of every sweep is the one ideal point."""
+    points = [("ideal", 0, {})]
+    for name, _, overrides, levels in SENSOR_SWEEPS:
+        points += [(name, level, overrides(level)) for level in levels[1:]]
+    return points + [("rig", 1, RIG_ERRORS)]
+
+
+def point_file(agent: str, task: str, weights: str | None, sweep: str, level: float) -> str:
+    tag = f"{agent}-{Path(weights).stem}" if weights else agent
+    return f"{tag}-{task}-{sweep.replace(' ', '-')}-{level:g}.csv"
+
+
+def run_sensor_study(out: Path, episodes: int, seed: int, workers: int) -> dict:
+    """Every point's episodes (a CSV each, read back when already there), as {(row, sweep, level): summary}."""
+    seeds, cells = list(range(seed, seed + episodes)), {}
+    runs = [((agent, task, weights), point) for agent, task, weights in SENSOR_AGENTS for point in sensor_points()]
+    runs += [((agent, task, None), point) for agent, task in SENSOR_BASELINES
+             for point in sensor_points() if point[0] in ("ideal", "rig")]
+    for (agent, task, weights), (sweep, level, overrides) in runs:
+        policy = learned_policy(agent, task, weights and default_weights(agent, task).with_name(weights)) \
+            if agent in LEARNED else None
+        path = out / point_file(agent, task, weights, sweep, level)
+        rows = stored_cell(path, seeds, cell_origin(agent, task, "cubes", policy, overrides))
+        if rows is None:
+            rows = evaluate(agent, task, "cubes", episodes, seed, workers, policy=policy, overrides=overrides)
+            write_csv(rows, path)
+        cells[(agent, task, weights), sweep, level] = summarise(rows)
+    return cells
+
+
+def sensor_markdown(cells: dict, episodes: int) -> str:
+    """The study as a table: one row per agent, a column per point, success % [95 %] / steps."""
+    points = [(sweep, level) for sweep, level, _ in sensor_points()]
+    unit = {name: unit for name, unit, _, _ in SENSOR_SWEEPS}
+    header = ["agent, task", "ideal"] + [f"{sweep} {level:g} {unit[sweep].split()[0]}" if sweep != "rig" else
+                                         "the rig's errors" for sweep, level in points[1:]]
+    lines = [f"Success % [95 %] / average steps over {episodes} paired episodes per point (cubes; episode i is "
+             "scene seed + i at every point).", "", "| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    for row in list(SENSOR_AGENTS) + [(a, t, None) for a, t in SENSOR_BASELINES]:
+        name = f"{row[0].upper()}{f' ({row[2]})' if row[2] else ''}, {row[1]}"
+        values = [cells.get((row, s, l)) for s, l in points]
+        lines.append(f"| {name} | " + " | ".join("-" if c is None else f"{c['success']:.1f} [{c['success_lo']:.0f}, "
+                                                 f"{c['success_hi']:.0f}] / {c['steps']:.2f}" for c in values) + " |")
+    return "\n".join(lines)
+
+
+def plot_sensor_study(cells: dict, path: Path) -> None:
+    """One panel per sweep: success % (95 % interval as a bar) of each learned agent against the level."""
+    width, height, left, right, top, bottom = 960, 360, 60, 20, 40, 60
+    image = np.full((height, width, 3), 255, np.uint8)
+    font, black, grey = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0), (215, 215, 215)
+    colours = ((200, 80, 40), (40, 150, 40), (40, 80, 200))   # BGR, one per learned row
+    panel_w, plot_h = (width - left - right) // len(SENSOR_SWEEPS), height - top - bottom
+    y_low = 50.0
+    to_py = lambda v: int(round(top + plot_h - (max(v, y_low) - y_low) / (100 - y_low) * plot_h))
+    for p, (sweep, unit, _, levels) in enumerate(SENSOR_SWEEPS):
+        x0, w = left + p * panel_w, panel_w - 40
+        to_px = lambda i: int(round(x0 + 15 + i * (w - 30) / (len(levels) - 1)))
+        for t in (50, 60, 70, 80, 90, 100):
+            cv2.line(image, (x0, to_py(t)), (x0 + w, to_py(t)), grey, 1)
+            if p == 0:
+                cv2.putText(image, f"{t}", (x0 - 30, to_py(t) + 4), font, 0.4, black, 1, cv2.LINE_AA)
+        cv2.rectangle(image, (x0, top), (x0 + w, top + plot_h), black, 1)
+        for i, level in enumerate(levels):
+            cv2.putText(image, f"{level:g}", (to_px(i) - 6, top + plot_h + 16), font, 0.4, black, 1, cv2.LINE_AA)
+        cv2.putText(image, f"{sweep} ({unit})", (x0, top + plot_h + 40), font, 0.45, black, 1, cv2.LINE_AA)
+        for r, row in enumerate(SENSOR_AGENTS):
+            found = [(i, cells.get((row, "ideal" if level == 0 else sweep, 0 if level == 0 else level)))
+                     for i, level in enumerate(levels)]
+            points = np.array([(to_px(i), to_py(c["success"])) for i, c in found if c], np.int32)
+            for i, c in found:
+                if c:
+                    cv2.line(image, (to_px(i), to_py(c["success_lo"])), (to_px(i), to_py(c["success_hi"])),
+                             colours[r], 1)
+            if len(points) >= 2:
+                cv2.polylines(image, [points], False, colours[r], 2, cv2.LINE_AA)
+            if p == 0:
+                label_text = f"{row[0].upper()}{f' ({row[2]})' if row[2] else ''} on {row[1]}"
+                cv2.putText(image, label_text, (left + 10 + 230 * r, 24), font, 0.5, colours[r], 1, cv2.LINE_AA)
+    cv2.putText(image, "success %", (4, top - 8), font, 0.4, black, 1, cv2.LINE_AA)
+    write_image(path, image[:, :, ::-1])
+
+
+# ================================================================================================
 # Demo: pictures of an episode (outside, wrist camera, volume, state) to a PNG and an MP4.
 # ================================================================================================
 
@@ -3782,6 +3883,18 @@ def cmd_soak(args) -> int:
     return 1 if counts["crashes"] or counts["non_finite"] or counts["leaked"] else 0
 
 
+def cmd_sensors(args) -> int:
+    """The sensor study: every point's CSV in --out (finished ones read back), then sensors.md and sensors.png."""
+    out, t0 = writable_folder(Path(args.out)), time.perf_counter()
+    cells = run_sensor_study(out, args.episodes, args.seed, args.workers)
+    markdown = sensor_markdown(cells, args.episodes)
+    replace_atomically(out / "sensors.md", lambda tmp: tmp.write_text(markdown + "\n"))
+    plot_sensor_study(cells, out / "sensors.png")
+    print(markdown)
+    print(f"wrote {out / 'sensors.md'}, {out / 'sensors.png'} and one CSV per point; {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
 def add_agent_args(command, default_agent: str | None) -> None:
     """The flags that pick what runs: agent, task, scene, weights (demo and eval)."""
     command.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default=default_agent,
@@ -3868,6 +3981,14 @@ def build_parser() -> ArgumentParser:
     bench.add_argument("--repeats", type=whole_number_arg(1, 100, "repeats"), default=3,
                        help="report the best of this many runs")
     bench.set_defaults(func=cmd_bench)
+    sensors = commands.add_parser("sensors", help="A3DE and I3DE as depth noise, missing returns and hand-eye "
+                                  "error grow (Sec. III-D), GNBV and GES at the rig's errors; a table and a figure")
+    sensors.add_argument("--episodes", type=episodes_arg, default=200, help="paired episodes per point (default 200)")
+    sensors.add_argument("--workers", type=workers_arg, default=os.cpu_count() or 1, help="worker processes")
+    sensors.add_argument("--seed", type=seed_arg, default=0, help="episode i uses scene seed + i at every point")
+    sensors.add_argument("--out", default="results/sensors", help="folder for the CSVs, sensors.md and sensors.png "
+                         "(default results/sensors; a point whose CSV is there is read back)")
+    sensors.set_defaults(func=cmd_sensors)
     soak = commands.add_parser("soak", help="random episodes with hostile actions (NaN, infinite, huge, malformed), "
                                             "resets mid-episode and steps after the end, on every task and scene "
                                             "kind; counts crashes, non-finite observations and leaked connections")
