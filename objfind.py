@@ -2508,6 +2508,11 @@ def plot_learning_curve(rows: list, path: Path) -> None:
 # resume, checkpoints and logs written as it goes, Ctrl-C and SIGTERM.
 # ================================================================================================
 
+def stop_as_ctrl_c(signum, frame):
+    """SIGTERM (a scheduler's stop) ends a command as Ctrl-C does: its workers ended, what it finished kept."""
+    raise KeyboardInterrupt
+
+
 def ignore_sigint() -> None:
     """In a worker process: Ctrl-C reaches the whole process group, and the parent alone handles it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -2622,9 +2627,6 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
                     optimizer=copy.deepcopy(optimizer.state_dict()), update=update, env_steps=env_steps,
                     wall_s=wall_s, seed=seed, obs_dim=obs_dim, settings=vars(ppo).copy(), rollout_streams=streams,
                     **(meta or {}))
-
-    def stop_as_ctrl_c(signum, frame):
-        raise KeyboardInterrupt   # SIGTERM (a scheduler's stop) ends training as Ctrl-C does
 
     latest, saved_update, recent = None, update, []
     bar = tqdm(total=total_steps, initial=min(env_steps, total_steps), unit="step", disable=not progress,
@@ -2962,11 +2964,13 @@ def table_markdown(cells: dict, episodes: int, versions: set) -> str:
 RIG_ERRORS = {k: RIG_SENSING[k] for k in ("tof_noise_ratio", "tof_missing_share", "tof_edge_jump_m",
                                           "tof_edge_drop_share", "hand_eye_error_m", "hand_eye_error_rad",
                                           "area_median_px")}   # the rig's errors, on the presets' own camera
-SENSOR_SWEEPS = (   # (name, what one level sets, four levels: none, the rig's, twice and four times the rig's)
-    ("depth noise", "% of the distance", lambda x: dict(tof_noise_ratio=x / 100), (0, 1, 2, 4)),
-    ("missing returns", "% of the pixels", lambda x: dict(tof_missing_share=x / 100), (0, 2, 10, 30)),
-    ("hand-eye error", "mm and x/3 degrees", lambda x: dict(hand_eye_error_m=x / 1000,
-                                                           hand_eye_error_rad=np.radians(x / 3)), (0, 3, 6, 12)),
+SENSOR_SWEEPS = (   # (name, axis title, a level in words, what it sets, four levels: none, the rig's, 2x, 4x or more)
+    ("depth noise", "depth noise (% of the distance)", lambda x: f"{x:g} % of the distance",
+     lambda x: dict(tof_noise_ratio=x / 100), (0, 1, 2, 4)),
+    ("missing returns", "missing returns (% of the pixels)", lambda x: f"{x:g} % of the pixels",
+     lambda x: dict(tof_missing_share=x / 100), (0, 2, 10, 30)),
+    ("hand-eye error", "hand-eye error (mm, and mm / 3 degrees)", lambda x: f"{x:g} mm, {x / 3:g} deg",
+     lambda x: dict(hand_eye_error_m=x / 1000, hand_eye_error_rad=np.radians(x / 3)), (0, 3, 6, 12)),
 )
 SENSOR_AGENTS = (("a3de", "ap", None), ("i3de", "ip", None))   # (agent, task, weights/ file or the shipped)
 SENSOR_BASELINES = (("gnbv", "ap"), ("ges", "ip"))               # at the ideal sensor and at the rig's errors
@@ -2975,7 +2979,7 @@ SENSOR_BASELINES = (("gnbv", "ap"), ("ges", "ip"))               # at the ideal 
 def sensor_points() -> list:
     """Every (sweep, level, overrides) of the study; level 0 of every sweep is the one ideal point."""
     points = [("ideal", 0, {})]
-    for name, _, overrides, levels in SENSOR_SWEEPS:
+    for name, _, _, overrides, levels in SENSOR_SWEEPS:
         points += [(name, level, overrides(level)) for level in levels[1:]]
     return points + [("rig", 1, RIG_ERRORS)]
 
@@ -3004,57 +3008,63 @@ def run_sensor_study(out: Path, episodes: int, seed: int, workers: int) -> dict:
 
 
 def sensor_markdown(cells: dict, episodes: int) -> str:
-    """The study as a table: one row per agent, a column per point, success % [95 %] / steps."""
-    points = [(sweep, level) for sweep, level, _ in sensor_points()]
-    unit = {name: unit for name, unit, _, _ in SENSOR_SWEEPS}
-    header = ["agent, task", "ideal"] + [f"{sweep} {level:g} {unit[sweep].split()[0]}" if sweep != "rig" else
-                                         "the rig's errors" for sweep, level in points[1:]]
-    lines = [f"Success % [95 %] / average steps over {episodes} paired episodes per point (cubes; episode i is "
+    """The study as a table: a row per point, a column per agent, success % [95 %] / steps."""
+    rows = list(SENSOR_AGENTS) + [(agent, task, None) for agent, task in SENSOR_BASELINES]
+    words = {name: describe for name, _, describe, _, _ in SENSOR_SWEEPS}
+    header = ["depth camera"] + [f"{a.upper()}{f' ({w})' if w else ''}, {t}" for a, t, w in rows]
+    lines = [f"Success % [95 %] / average steps over {episodes} paired episodes per point on cubes (episode i is "
              "scene seed + i at every point).", "", "| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
-    for row in list(SENSOR_AGENTS) + [(a, t, None) for a, t in SENSOR_BASELINES]:
-        name = f"{row[0].upper()}{f' ({row[2]})' if row[2] else ''}, {row[1]}"
-        values = [cells.get((row, s, l)) for s, l in points]
-        lines.append(f"| {name} | " + " | ".join("-" if c is None else f"{c['success']:.1f} [{c['success_lo']:.0f}, "
-                                                 f"{c['success_hi']:.0f}] / {c['steps']:.2f}" for c in values) + " |")
+    for sweep, level, _ in sensor_points():
+        name = ("ideal" if sweep == "ideal" else "the rig's errors (README)" if sweep == "rig" else
+                f"{sweep} {words[sweep](level)}")
+        values = [cells.get((row, sweep, level)) for row in rows]
+        lines.append(f"| {name} | " + " | ".join("" if c is None else f"{c['success']:.1f} [{c['success_lo']:.1f}, "
+                                                 f"{c['success_hi']:.1f}] / {c['steps']:.2f}" for c in values) + " |")
     return "\n".join(lines)
 
 
 def plot_sensor_study(cells: dict, path: Path) -> None:
-    """One panel per sweep: success % (95 % interval as a bar) of each learned agent against the level."""
-    width, height, left, right, top, bottom = 960, 360, 60, 20, 40, 60
+    """Per sweep, success % (with its 95 % interval) and average steps of each learned agent against the
+    level: a row of panels each, drawn with OpenCV."""
+    width, height, left, right, top, gap, bottom = 960, 560, 60, 20, 40, 60, 50
     image = np.full((height, width, 3), 255, np.uint8)
     font, black, grey = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0), (215, 215, 215)
     colours = ((200, 80, 40), (40, 150, 40), (40, 80, 200))   # BGR, one per learned row
-    panel_w, plot_h = (width - left - right) // len(SENSOR_SWEEPS), height - top - bottom
-    y_low = 50.0
-    to_py = lambda v: int(round(top + plot_h - (max(v, y_low) - y_low) / (100 - y_low) * plot_h))
-    for p, (sweep, unit, _, levels) in enumerate(SENSOR_SWEEPS):
-        x0, w = left + p * panel_w, panel_w - 40
-        to_px = lambda i: int(round(x0 + 15 + i * (w - 30) / (len(levels) - 1)))
-        for t in (50, 60, 70, 80, 90, 100):
-            cv2.line(image, (x0, to_py(t)), (x0 + w, to_py(t)), grey, 1)
-            if p == 0:
-                cv2.putText(image, f"{t}", (x0 - 30, to_py(t) + 4), font, 0.4, black, 1, cv2.LINE_AA)
-        cv2.rectangle(image, (x0, top), (x0 + w, top + plot_h), black, 1)
-        for i, level in enumerate(levels):
-            cv2.putText(image, f"{level:g}", (to_px(i) - 6, top + plot_h + 16), font, 0.4, black, 1, cv2.LINE_AA)
-        cv2.putText(image, f"{sweep} ({unit})", (x0, top + plot_h + 40), font, 0.45, black, 1, cv2.LINE_AA)
-        for r, row in enumerate(SENSOR_AGENTS):
-            found = [(i, cells.get((row, "ideal" if level == 0 else sweep, 0 if level == 0 else level)))
-                     for i, level in enumerate(levels)]
-            points = np.array([(to_px(i), to_py(c["success"])) for i, c in found if c], np.int32)
-            for i, c in found:
-                if c:
-                    cv2.line(image, (to_px(i), to_py(c["success_lo"])), (to_px(i), to_py(c["success_hi"])),
-                             colours[r], 1)
-            if len(points) >= 2:
-                cv2.polylines(image, [points], False, colours[r], 2, cv2.LINE_AA)
-            if p == 0:
-                label_text = f"{row[0].upper()}{f' ({row[2]})' if row[2] else ''} on {row[1]}"
-                cv2.putText(image, label_text, (left + 10 + 230 * r, 24), font, 0.5, colours[r], 1, cv2.LINE_AA)
-    cv2.putText(image, "success %", (4, top - 8), font, 0.4, black, 1, cv2.LINE_AA)
+    panel_w, plot_h = (width - left - right) // len(SENSOR_SWEEPS), (height - top - gap - bottom) // 2
+    found = {(row, sweep, level): cells.get((row, "ideal" if level == 0 else sweep, level))
+             for row in SENSOR_AGENTS for sweep, _, _, _, levels in SENSOR_SWEEPS for level in levels}
+    most_steps = max([c["steps"] for c in found.values() if c] + [1.0])
+    metrics = (("success %", "success", (50.0, 100.0), (50, 60, 70, 80, 90, 100)),
+               ("average steps", "steps", (0.0, float(nice_ticks(most_steps, 4)[-1])), nice_ticks(most_steps, 4)))
+    for m, (ylabel, key, (y_low, y_high), ticks) in enumerate(metrics):
+        y0 = top + m * (plot_h + gap)
+        to_py = lambda v: int(round(y0 + plot_h - (min(max(v, y_low), y_high) - y_low) / (y_high - y_low) * plot_h))
+        cv2.putText(image, ylabel, (4, y0 - 8), font, 0.4, black, 1, cv2.LINE_AA)
+        for p, (sweep, title, _, _, levels) in enumerate(SENSOR_SWEEPS):
+            x0, w = left + p * panel_w, panel_w - 40
+            to_px = lambda i: int(round(x0 + 15 + i * (w - 30) / (len(levels) - 1)))
+            for t in ticks:
+                cv2.line(image, (x0, to_py(t)), (x0 + w, to_py(t)), grey, 1)
+                if p == 0:
+                    cv2.putText(image, f"{t:g}", (x0 - 30, to_py(t) + 4), font, 0.4, black, 1, cv2.LINE_AA)
+            cv2.rectangle(image, (x0, y0), (x0 + w, y0 + plot_h), black, 1)
+            for i, level in enumerate(levels):
+                cv2.putText(image, f"{level:g}", (to_px(i) - 6, y0 + plot_h + 16), font, 0.4, black, 1, cv2.LINE_AA)
+            if m == len(metrics) - 1:
+                cv2.putText(image, title, (x0, y0 + plot_h + 36), font, 0.45, black, 1, cv2.LINE_AA)
+            for r, row in enumerate(SENSOR_AGENTS):
+                series = [(i, found[row, sweep, level]) for i, level in enumerate(levels)]
+                for i, c in series:
+                    if c and key == "success":
+                        cv2.line(image, (to_px(i) + 2 * r, to_py(c["success_lo"])),
+                                 (to_px(i) + 2 * r, to_py(c["success_hi"])), colours[r], 1)
+                points = np.array([(to_px(i) + 2 * r, to_py(c[key])) for i, c in series if c], np.int32)
+                if len(points) >= 2:
+                    cv2.polylines(image, [points], False, colours[r], 2, cv2.LINE_AA)
+    for r, row in enumerate(SENSOR_AGENTS):
+        text = f"{row[0].upper()}{f' ({row[2]})' if row[2] else ''} on {row[1]}"
+        cv2.putText(image, text, (left + 110 + 260 * r, 20), font, 0.5, colours[r], 1, cv2.LINE_AA)
     write_image(path, image[:, :, ::-1])
-
 
 # ================================================================================================
 # Demo: pictures of an episode (outside, wrist camera, volume, state) to a PNG and an MP4.
@@ -4004,6 +4014,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if getattr(args, "episodes", None) and args.seed + args.episodes - 1 > MAX_SEED:
         parser.error(f"--seed {args.seed} with --episodes {args.episodes} goes past the largest seed, {MAX_SEED}")
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, stop_as_ctrl_c)
     try:
         return args.func(args)
     except UsageError as error:
