@@ -2211,3 +2211,20 @@ def test_the_median_filter_keeps_a_noisy_cameras_perceived_share_from_swelling()
     ideal = share_ratio(tof_noise_ratio=0.0, area_median_px=0)
     assert share_ratio(area_median_px=0) > 1.4 * ideal
     assert abs(share_ratio() / ideal - 1) < 0.2
+
+
+def test_the_sensor_study_writes_every_point_and_reads_finished_ones_back(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(of, "SENSOR_SWEEPS", of.SENSOR_SWEEPS[:1])    # one sweep, the active agents: the
+    monkeypatch.setattr(of, "SENSOR_AGENTS", of.SENSOR_AGENTS[:1])    # machinery, not the figures
+    monkeypatch.setattr(of, "SENSOR_BASELINES", of.SENSOR_BASELINES[:1])
+    out = tmp_path / "sensors"
+    assert of.main(["sensors", "--episodes", "1", "--workers", "1", "--out", str(out)]) == 0
+    points = len(of.sensor_points())
+    assert len(list(out.glob("*.csv"))) == points * len(of.SENSOR_AGENTS) + 2 * len(of.SENSOR_BASELINES)
+    table = (out / "sensors.md").read_text().splitlines()
+    assert len([line for line in table if line.startswith("| ")]) == 1 + points   # the header and a row per point
+    assert cv2.imread(str(out / "sensors.png")) is not None
+    monkeypatch.setattr(of, "evaluate", lambda *a, **k: pytest.fail("a finished point was run again"))
+    capsys.readouterr()
+    assert of.main(["sensors", "--episodes", "1", "--workers", "1", "--out", str(out)]) == 0
+    assert capsys.readouterr().out.splitlines()[:len(table)] == table
