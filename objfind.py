@@ -2980,15 +2980,16 @@ SENSOR_SWEEPS = (   # (name, axis title, a level in words, what it sets, four le
      lambda x: dict(hand_eye_error_m=x / 1000, hand_eye_error_rad=np.radians(x / 3)), (0, 3, 6, 12)),
 )
 SENSOR_AGENTS = (("a3de", "ap", None), ("i3de", "ip", None))   # (agent, task, weights/ file or the shipped)
-SENSOR_BASELINES = (("gnbv", "ap"), ("ges", "ip"))               # at the ideal sensor and at the rig's errors
+SENSOR_BASELINES = (("gnbv", "ap"), ("ges", "ip"))               # with the ideal camera and the rig's
 
 
 def sensor_points() -> list:
-    """Every (sweep, level, overrides) of the study; level 0 of every sweep is the one ideal point."""
+    """Every (sweep, level, overrides) of the study: the ideal camera (level 0 of every sweep), the sweeps'
+    other levels, the rig's errors on the presets' camera, and the rig's camera as the real presets have it."""
     points = [("ideal", 0, {})]
     for name, _, _, overrides, levels in SENSOR_SWEEPS:
         points += [(name, level, overrides(level)) for level in levels[1:]]
-    return points + [("rig", 1, RIG_ERRORS)]
+    return points + [("rig errors", 1, RIG_ERRORS), ("rig camera", 1, RIG_SENSING)]
 
 
 def point_file(agent: str, task: str, weights: str | None, sweep: str, level: float) -> str:
@@ -3001,7 +3002,7 @@ def run_sensor_study(out: Path, episodes: int, seed: int, workers: int) -> dict:
     seeds, cells = list(range(seed, seed + episodes)), {}
     runs = [((agent, task, weights), point) for agent, task, weights in SENSOR_AGENTS for point in sensor_points()]
     runs += [((agent, task, None), point) for agent, task in SENSOR_BASELINES
-             for point in sensor_points() if point[0] in ("ideal", "rig")]
+             for point in sensor_points() if point[0] in ("ideal", "rig camera")]
     for (agent, task, weights), (sweep, level, overrides) in runs:
         policy = learned_policy(agent, task, weights and default_weights(agent, task).with_name(weights)) \
             if agent in LEARNED else None
@@ -3022,8 +3023,8 @@ def sensor_markdown(cells: dict, episodes: int) -> str:
     lines = [f"Success % [95 %] / average steps over {episodes} paired episodes per point on cubes (episode i is "
              "scene seed + i at every point).", "", "| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for sweep, level, _ in sensor_points():
-        name = ("ideal" if sweep == "ideal" else "the rig's errors (README)" if sweep == "rig" else
-                f"{sweep} {words[sweep](level)}")
+        name = {"ideal": "ideal", "rig errors": "the rig's errors on this camera (README)",
+                "rig camera": "the rig's camera (`RIG_SENSING`)"}.get(sweep) or f"{sweep} {words[sweep](level)}"
         values = [cells.get((row, sweep, level)) for row in rows]
         lines.append(f"| {name} | " + " | ".join("" if c is None else f"{c['success']:.1f} [{c['success_lo']:.1f}, "
                                                  f"{c['success_hi']:.1f}] / {c['steps']:.2f}" for c in values) + " |")
