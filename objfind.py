@@ -331,6 +331,8 @@ RIG_SENSING = dict(
     tof_noise_ratio=0.01,                                      # datasheet: <= 1 % of the distance
     tof_missing_share=0.02, tof_edge_jump_m=0.02, tof_edge_drop_share=0.5,   # assumed, README
     rgb_offset_m=(0.03, 0.0, 0.0),                             # assumed: the two cameras side by side
+    camera_offset_m=0.12,                                      # assumed: what the fingertips touch lies beyond
+                                                               # the minimum range (8 cm: GES blind, README)
     area_median_px=3,                                          # the robot's filter for such a camera (README)
     hand_eye_error_m=0.003, hand_eye_error_rad=0.0175)         # assumed: 3 mm and 1 degree
 
