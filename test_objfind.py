@@ -1543,7 +1543,8 @@ def test_a_second_run_into_a_folder_being_written_is_refused_and_the_first_keeps
     assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1, refused.stderr
     assert "being written by another objfind run" in refused.stderr
     cells = sorted(out.glob("*.csv"))
-    assert len(cells) == sum(map(len, of.PAPER_TABLE_II.values())) and all(len(of.read_episodes(cell)) == 1 for cell in cells)   # all the first run's
+    assert len(cells) == sum(map(len, of.PAPER_TABLE_II.values()))            # all the first run's cells
+    assert all(len(of.read_episodes(cell)) == 1 for cell in cells)
     assert (out / "table2.md").exists() and not list(out.glob(".*"))      # no lock or temporary file left
     # a lock left by a run that died is taken over; one held by a live process is not
     (out / of.LOCK_NAME).write_text("999999999")
