@@ -3034,15 +3034,19 @@ def sensor_markdown(cells: dict, episodes: int) -> str:
 
 
 def plot_sensor_study(cells: dict, path: Path) -> None:
-    """Per sweep, success % (with its 95 % interval) and average steps of each learned agent against the
-    level: a row of panels each, drawn with OpenCV."""
-    width, height, left, right, top, gap, bottom = 960, 560, 60, 20, 40, 60, 50
+    """Per sweep, and for the rig as a whole, success % (with its 95 % interval) and average steps of each
+    learned agent against the level: a row of panels each, drawn with OpenCV."""
+    width, height, left, right, top, gap, bottom = 1040, 560, 60, 10, 40, 60, 50
     image = np.full((height, width, 3), 255, np.uint8)
     font, black, grey = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0), (215, 215, 215)
     colours = ((200, 80, 40), (40, 150, 40), (40, 80, 200))   # BGR, one per learned row
-    panel_w, plot_h = (width - left - right) // len(SENSOR_SWEEPS), (height - top - gap - bottom) // 2
-    found = {(row, sweep, level): cells.get((row, "ideal" if level == 0 else sweep, level))
-             for row in SENSOR_AGENTS for sweep, _, _, _, levels in SENSOR_SWEEPS for level in levels}
+    panels = [(title, [(f"{level:g}", ("ideal", 0) if level == 0 else (sweep, level)) for level in levels])
+              for sweep, title, _, _, levels in SENSOR_SWEEPS]
+    panels.append(("the rig (RIG_SENSING)", [("ideal", ("ideal", 0)), ("its errors", ("rig errors", 1)),
+                                             ("its camera", ("rig camera", 1))]))
+    panel_w, plot_h = (width - left - right) // len(panels), (height - top - gap - bottom) // 2
+    found = {(row, point): cells.get((row, *point)) for row in SENSOR_AGENTS for _, ticks in panels
+             for _, point in ticks}
     most_steps = max([c["steps"] for c in found.values() if c] + [1.0])
     metrics = (("success %", "success", (50.0, 100.0), (50, 60, 70, 80, 90, 100)),
                ("average steps", "steps", (0.0, float(nice_ticks(most_steps, 4)[-1])), nice_ticks(most_steps, 4)))
@@ -3050,20 +3054,21 @@ def plot_sensor_study(cells: dict, path: Path) -> None:
         y0 = top + m * (plot_h + gap)
         to_py = lambda v: int(round(y0 + plot_h - (min(max(v, y_low), y_high) - y_low) / (y_high - y_low) * plot_h))
         cv2.putText(image, ylabel, (4, y0 - 8), font, 0.4, black, 1, cv2.LINE_AA)
-        for p, (sweep, title, _, _, levels) in enumerate(SENSOR_SWEEPS):
-            x0, w = left + p * panel_w, panel_w - 40
-            to_px = lambda i: int(round(x0 + 15 + i * (w - 30) / (len(levels) - 1)))
+        for p, (title, levels) in enumerate(panels):
+            x0, w = left + p * panel_w, panel_w - 30
+            to_px = lambda i: int(round(x0 + 20 + i * (w - 40) / (len(levels) - 1)))
             for t in ticks:
                 cv2.line(image, (x0, to_py(t)), (x0 + w, to_py(t)), grey, 1)
                 if p == 0:
                     cv2.putText(image, f"{t:g}", (x0 - 30, to_py(t) + 4), font, 0.4, black, 1, cv2.LINE_AA)
             cv2.rectangle(image, (x0, y0), (x0 + w, y0 + plot_h), black, 1)
-            for i, level in enumerate(levels):
-                cv2.putText(image, f"{level:g}", (to_px(i) - 6, y0 + plot_h + 16), font, 0.4, black, 1, cv2.LINE_AA)
+            for i, (text, _) in enumerate(levels):
+                (tw, _), _ = cv2.getTextSize(text, font, 0.4, 1)
+                cv2.putText(image, text, (to_px(i) - tw // 2, y0 + plot_h + 16), font, 0.4, black, 1, cv2.LINE_AA)
             if m == len(metrics) - 1:
-                cv2.putText(image, title, (x0, y0 + plot_h + 36), font, 0.45, black, 1, cv2.LINE_AA)
+                cv2.putText(image, title, (x0, y0 + plot_h + 36), font, 0.4, black, 1, cv2.LINE_AA)
             for r, row in enumerate(SENSOR_AGENTS):
-                series = [(i, found[row, sweep, level]) for i, level in enumerate(levels)]
+                series = [(i, found[row, point]) for i, (_, point) in enumerate(levels)]
                 for i, c in series:
                     if c and key == "success":
                         cv2.line(image, (to_px(i) + 2 * r, to_py(c["success_lo"])),
