@@ -2275,6 +2275,8 @@ RUN_FIELDS = dict(   # what a checkpoint of a run adds (the first five always), 
     world=lambda v: isinstance(v, dict) and set(v) <= {f.name for f in dataclasses.fields(Settings)})
 MAX_CHECKPOINT_BYTES = 64 * 2 ** 20   # the largest network PPOSettings allows, with Adam's state, is about 27 MB
 MAX_STREAMS = 4096                    # rollout streams of a run
+DEFAULT_STREAMS = 10                  # a new run's: 500 env steps each of the paper's 5000-step batch, enough
+                                      # to keep 2 cores or 10 machines busy (the shipped runs used 2: model card)
 
 
 def read_checkpoint(path: Path, run: bool = False, state_size: int | None = None) -> dict:
@@ -2540,6 +2542,48 @@ def stop_pool(pool: ProcessPoolExecutor) -> None:
 
 DEAD_WORKER = "a worker process died (killed, or out of memory?)"
 
+
+class DeadWorker(Exception):
+    """A Ray worker or actor died: the command stops, as with a dead worker process."""
+
+
+RAY_EXCLUDES = [".git", "runs", "out", "results", "__pycache__", ".pytest_cache"]   # not needed by workers
+
+
+def connect_ray(address: str):
+    """Ray, connected once per process: `address` "local" starts a Ray instance here, any other joins that
+    cluster. Every worker gets this folder (objfind.py, weights/) as its working directory (README)."""
+    try:
+        import ray
+    except ImportError:
+        raise UsageError("--ray needs Ray, which objfind does not require: pip install 'ray[default]'") from None
+    if not ray.is_initialized():
+        ray.init(address=None if address == "local" else address, log_to_driver=False,
+                 runtime_env={"working_dir": str(Path(__file__).resolve().parent), "excludes": RAY_EXCLUDES})
+    return ray
+
+
+def ray_results(ray, refs: list, done=None) -> list:
+    """The results of Ray tasks in submission order; a dead worker or Ctrl-C cancels all that remain."""
+    results = []
+    try:
+        for ref in refs:
+            results.append(ray.get(ref))
+            done and done(results[-1])
+    except BaseException as error:
+        for ref in refs[len(results):]:   # best effort: a task's worker is stopped, an actor's task dropped
+            try:
+                ray.cancel(ref, force=True)
+            except ValueError:             # an actor's task cannot be forced; its actor is killed next
+                ray.cancel(ref)
+        if isinstance(error, (ray.exceptions.WorkerCrashedError, ray.exceptions.RayActorError,
+                              ray.exceptions.NodeDiedError)):
+            raise DeadWorker(DEAD_WORKER) from None
+        if isinstance(error, ray.exceptions.RayTaskError):
+            raise error.as_instanceof_cause() from None
+        raise
+    return results
+
 ROLLOUT_WORKER: dict = {}   # per worker process: its env and its copy of the policy
 
 
@@ -2558,14 +2602,34 @@ def run_rollout_worker(weights: dict, steps: int, env_seed: int, sample_seed: in
     return collect_rollout(ROLLOUT_WORKER["env"], model, steps, env_seed, sample_seed)
 
 
-def rollout_collector(make_env, env, obs_dim: int, ppo: PPOSettings, streams: int, processes: int, seed: int):
+class RolloutActor:
+    """A Ray actor: a rollout worker whose env lives across updates, as a worker process's does."""
+
+    def __init__(self, make_env, obs_dim: int, ppo_values: dict):
+        start_rollout_worker(make_env, obs_dim, ppo_settings(ppo_values))
+
+    def rollout(self, weights: dict, steps: int, env_seed: int, sample_seed: int) -> dict:
+        return run_rollout_worker(weights, steps, env_seed, sample_seed)
+
+
+def rollout_collector(make_env, env, obs_dim: int, ppo: PPOSettings, streams: int, processes: int, seed: int,
+                      ray_address: str | None = None):
     """`collect(weights, update)` for ppo_iteration, serving the run's streams from `processes` worker
-    processes (each with its own env) or from this process with `env`; and a function that closes them."""
+    processes or Ray actors (each with its own env) or from this process with `env`; and a function that
+    closes them. A stream's rollout depends on its seeds only, never on what serves it."""
     steps = max(1, ppo.batch_steps // streams)
 
     def jobs(weights: dict, update: int) -> list:
         return [(weights, steps, derived_seed(seed, update, w, 0), derived_seed(seed, update, w, 1))
                 for w in range(streams)]
+    if ray_address:
+        env.close()
+        ray = connect_ray(ray_address)
+        actor = ray.remote(num_cpus=1, max_restarts=0)(RolloutActor)
+        actors = [actor.remote(make_env, obs_dim, vars(ppo)) for _ in range(processes)]
+        return (lambda weights, update: ray_results(ray, [actors[i % processes].rollout.remote(*job) for i, job
+                                                          in enumerate(jobs(weights, update))]),
+                lambda: [ray.kill(a) for a in actors])
     if processes > 1:
         env.close()
         pool = process_pool(processes, start_rollout_worker, (make_env, obs_dim, ppo, True))
@@ -2587,14 +2651,15 @@ class TrainingInterrupted(Exception):
 
 def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSettings(), workers: int = 1,
           seed: int = 0, resume: dict | None = None, progress: bool = True, meta: dict | None = None,
-          init: dict | None = None, fresh_terminate: bool = False) -> dict:
+          init: dict | None = None, fresh_terminate: bool = False, streams: int = 1,
+          ray_address: str | None = None) -> dict:
     """PPO with `workers` processes, each with its own make_env(): out_dir/log.csv every update, checkpoint.pt
     and curve.png every few updates, at the last and when interrupted. `resume`, the run's checkpoint,
     continues it exactly (its settings, streams and seed) with any worker count; `init` warm-starts a new run
-    from a checkpoint's networks, with fresh_terminate the terminate head anew (weights/README.md)."""
+    from a checkpoint's networks, with fresh_terminate the terminate head anew (weights/README.md). Each
+    batch is split into `streams` rollouts whatever serves them, so the weights do not depend on `workers`."""
     writable_folder(out_dir)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
-    streams = workers
     if resume is not None:   # a run keeps the settings, seed and streams it started with
         ppo, seed, streams = ppo_settings(resume["settings"]), resume["seed"], resume.get("rollout_streams", workers)
         meta = {**({"init": resume["init"]} if "init" in resume else {}), **(meta or {})}
@@ -2621,7 +2686,8 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
             raise UsageError("--init: the checkpoint's network does not match these settings") from None
         if fresh_terminate:
             model.reset_terminate(ppo.init_terminate_prob)
-    collect, close_workers = rollout_collector(make_env, env, obs_dim, ppo, streams, min(workers, streams), seed)
+    collect, close_workers = rollout_collector(make_env, env, obs_dim, ppo, streams, min(workers, streams), seed,
+                                               ray_address)
 
     def snapshot() -> dict:
         """The checkpoint of the update just finished (copies: the next update changes the tensors)."""
@@ -2652,13 +2718,13 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
             bar.update(min(env_steps, total_steps) - bar.n)
             bar.set_postfix(steps_per_s=f"{row['env_steps'] / (time.perf_counter() - t0):.0f}",
                             success=f"{np.mean([e['success'] for e in recent]) if recent else 0:.2f}")
-    except (KeyboardInterrupt, BrokenProcessPool, FloatingPointError) as stop:
+    except (KeyboardInterrupt, BrokenProcessPool, DeadWorker, FloatingPointError) as stop:
         if latest is not None and latest["update"] > saved_update:
             save_checkpoint(ckpt_path, latest)
             write_csv([r for r in log_rows if int(r["update"]) <= latest["update"]], log_path, TRAIN_LOG_FIELDS)
             plot_learning_curve(log_rows, out_dir / "curve.png")
         kept = latest or resume
-        cause = (DEAD_WORKER if isinstance(stop, BrokenProcessPool) else
+        cause = (DEAD_WORKER if isinstance(stop, (BrokenProcessPool, DeadWorker)) else
                  f"training diverged in update {update + 1} ({stop})" if isinstance(stop, FloatingPointError) else
                  "interrupted")
         raise TrainingInterrupted(kept["update"] if kept else 0, kept["env_steps"] if kept else 0, ckpt_path,
@@ -2759,9 +2825,16 @@ def run_episode(env: ObjectFindingEnv, agent, seed: int) -> dict:
                 decision_ms=round(1e3 * decide_s / info["steps"], 3))
 
 
-def run_jobs(function, jobs: list, workers: int, done=None) -> list:
-    """function(*job) for every job, in `workers` worker processes or in this one when workers is 1;
-    the results in job order, each also handed to done() as it arrives (for progress bars)."""
+def run_jobs(function, jobs: list, workers: int, done=None, ray_address: str | None = None) -> list:
+    """function(*job) for every job, in `workers` worker processes, in this one when workers is 1, or as
+    Ray tasks; the results in job order, each also handed to done() as it arrives (for progress bars)."""
+    if ray_address:
+        ray = connect_ray(ray_address)
+        task = ray.remote(num_cpus=1, max_retries=0)(function)
+        try:
+            return ray_results(ray, [task.remote(*job) for job in jobs], done)
+        except DeadWorker:
+            raise UsageError(f"{DEAD_WORKER}: stopped; what was already written is kept") from None
     results, pool = [], process_pool(workers) if workers > 1 else None
     try:
         for job in [pool.submit(function, *job) for job in jobs] if pool else jobs:
@@ -2792,7 +2865,8 @@ EVAL_CHUNK = 5   # episodes per job of a worker process: small jobs keep all wor
 
 
 def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 0, workers: int = 1,
-             progress: bool = True, policy: dict | None = None, overrides: dict | None = None) -> list:
+             progress: bool = True, policy: dict | None = None, overrides: dict | None = None,
+             ray_address: str | None = None) -> list:
     """Paired episodes: episode i is scene seed + i for every agent, in worlds with these Settings
     overrides (an ablation). A learned agent plays `policy`, or its shipped weights. Rows in seed order,
     each with the cell's origin."""
@@ -2804,7 +2878,7 @@ def evaluate(agent_name: str, task: str, scene: str, episodes: int, seed: int = 
             for i in range(0, episodes, EVAL_CHUNK)]
     with tqdm(total=episodes, desc=f"{agent_name} {task}/{scene}", unit="ep", disable=not progress,
               file=sys.stderr) as bar:
-        parts = run_jobs(evaluate_chunk, jobs, workers, lambda part: bar.update(len(part)))
+        parts = run_jobs(evaluate_chunk, jobs, workers, lambda part: bar.update(len(part)), ray_address)
     return sorted(({**row, **origin} for part in parts for row in part), key=lambda r: r["seed"])
 
 
@@ -3795,7 +3869,8 @@ def eval_table(args) -> int:
             continue
         if rows is None:
             rows = evaluate(agent, task, scene, args.episodes, args.seed, args.workers,
-                            policy=policies.get((agent, task)), overrides=information_rule(args))
+                            policy=policies.get((agent, task)), overrides=information_rule(args),
+                            ray_address=args.ray)
             write_csv(rows, csv_path)
         cells[(agent, task, scene)] = summarise(rows)
         versions.add(rows[0]["versions"])
@@ -3830,7 +3905,7 @@ def cmd_eval(args) -> int:
         stored_cell(csv_path, list(range(args.seed, args.seed + args.episodes)), origin)
     t0 = time.perf_counter()
     rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, policy=policy,
-                    overrides=information_rule(args))
+                    overrides=information_rule(args), ray_address=args.ray)
     if csv_path:
         write_csv(rows, csv_path)      # before anything is printed: a closed output loses nothing
     print_summary(args.agent, args.task, args.scene, summarise(rows), time.perf_counter() - t0)
@@ -3842,9 +3917,9 @@ def cmd_eval(args) -> int:
 def cmd_train(args) -> int:
     run = None
     if args.resume:
-        if args.set or args.world or args.init or args.fresh_terminate or args.seed is not None:
-            raise UsageError("--set, --world, --seed, --init and --fresh-terminate start a new run; a resumed run "
-                             "keeps its own")
+        if args.set or args.world or args.init or args.fresh_terminate or args.seed is not None or args.streams:
+            raise UsageError("--set, --world, --seed, --streams, --init and --fresh-terminate start a new run; a "
+                             "resumed run keeps its own")
         out = Path(args.out or Path("runs") / f"{args.task or 'ap'}-{args.scene or 'cubes'}")
         if not (out / "checkpoint.pt").exists():
             raise UsageError(f"--resume: no checkpoint in {str(out)!r}")
@@ -3878,7 +3953,8 @@ def cmd_train(args) -> int:
     try:
         result = train(functools.partial(ObjectFindingEnv, args.task, args.scene, **world), out, args.steps,
                        ppo_settings(dict(args.set or [])), workers=args.workers, seed=args.seed or 0,
-                       resume=run, meta=meta, init=init, fresh_terminate=args.fresh_terminate)
+                       resume=run, meta=meta, init=init, fresh_terminate=args.fresh_terminate,
+                       streams=args.streams or DEFAULT_STREAMS, ray_address=args.ray)
     except TrainingInterrupted as stop:
         diverged = stop.cause.startswith("training diverged")
         kept = f"kept {stop} in {stop.path}" if stop.update else "nothing was kept"
@@ -3962,13 +4038,18 @@ def build_parser() -> ArgumentParser:
     training.add_argument("--scene", choices=SCENES,
                           help="scene kind to train on (default cubes; with --resume, the run's own)")
     training.add_argument("--workers", type=workers_arg, default=os.cpu_count() or 1,
-                          help="env worker processes (default all cores). A new run splits each batch into "
-                               "this many rollout streams; a resumed run keeps its streams and repeats exactly "
-                               "with any worker count")
+                          help="env worker processes serving the run's rollout streams (default all cores); "
+                               "the weights do not depend on it")
+    training.add_argument("--streams", type=whole_number_arg(1, MAX_STREAMS, "the number of rollout streams"),
+                          help=f"rollout streams a new run splits each PPO batch into (default {DEFAULT_STREAMS}); "
+                               "kept in the checkpoint, so the run repeats exactly on any number of processes")
     training.add_argument("--steps", type=steps_arg, default=2_000_000,
                           help="env steps in all, counting those of a resumed run (default 2000000)")
     training.add_argument("--seed", type=seed_arg,
                           help="seeds the network, and each update's env resets and samples (default 0)")
+    training.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                          help="serve the rollout streams with --workers Ray actors: on a Ray instance started "
+                               "here, or on the cluster at ADDRESS (README: Past one machine)")
     training.add_argument("--out", help="run folder: checkpoint.pt, log.csv, curve.png (default runs/TASK-SCENE)")
     training.add_argument("--resume", action="store_true",
                           help="continue the run in --out from its checkpoint, with the settings it started with")
@@ -3996,6 +4077,9 @@ def build_parser() -> ArgumentParser:
     evaluation.add_argument("--target-size", choices=("known", "unknown"), default="known",
                             help="the information rule: every agent is told its target's size (known, Table II), "
                                  "or no agent is (unknown: the ablation; use another --out for its table)")
+    evaluation.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                            help="run the episodes as Ray tasks on every CPU of a Ray instance started here, or "
+                                 "of the cluster at ADDRESS (--workers is then Ray's to decide)")
     evaluation.add_argument("--out", help="CSV of every episode (with --table: a folder, default results)")
     evaluation.set_defaults(func=cmd_eval)
     bench = commands.add_parser("bench", help="per-stage step time and env steps/s")
@@ -4048,4 +4132,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    if any(arg == "--ray" or arg.startswith("--ray=") for arg in sys.argv[1:]):
+        # Ray's workers find functions by module name: run the command in `objfind`, not in __main__
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        sys.exit(importlib.import_module("objfind").main())
     sys.exit(main())

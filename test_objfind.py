@@ -1270,15 +1270,19 @@ def test_resume_keeps_the_runs_task_and_scene(tmp_path, capsys, monkeypatch):
     assert of.main(["train", "--resume", "--out", run]) == 0 and made == [("ip", "cubes")]
 
 
-def test_a_resumed_run_repeats_exactly_with_another_worker_count(tmp_path):
+def test_a_run_gives_the_same_weights_with_any_worker_count_resumed_or_not(tmp_path):
+    """Streams belong to the run: 3 streams served by 2 processes, by 1, and resumed on 1 after a stop."""
     env = functools.partial(of.ObjectFindingEnv, "ap", "cubes")
-    p = of.PPOSettings(hidden=16, batch_steps=64, minibatch=32, epochs=2, checkpoint_every=1)
-    straight = of.train(env, tmp_path / "a", total_steps=128, ppo=p, workers=2, progress=False)
-    of.train(env, tmp_path / "b", total_steps=64, ppo=p, workers=2, progress=False)
-    resumed = of.train(env, tmp_path / "b", total_steps=128, ppo=p, workers=1, progress=False,
+    p = of.PPOSettings(hidden=16, batch_steps=63, minibatch=21, epochs=2, checkpoint_every=1)
+    straight = of.train(env, tmp_path / "a", total_steps=126, ppo=p, workers=2, streams=3, progress=False)
+    alone = of.train(env, tmp_path / "c", total_steps=126, ppo=p, workers=1, streams=3, progress=False)
+    of.train(env, tmp_path / "b", total_steps=63, ppo=p, workers=2, streams=3, progress=False)
+    resumed = of.train(env, tmp_path / "b", total_steps=126, ppo=p, workers=1, progress=False,
                        resume=of.read_checkpoint(tmp_path / "b" / "checkpoint.pt", run=True))
-    for (name, a), b in zip(straight["model"].state_dict().items(), resumed["model"].state_dict().values()):
-        assert torch.equal(a, b), name
+    assert of.read_checkpoint(tmp_path / "b" / "checkpoint.pt", run=True)["rollout_streams"] == 3
+    for other in (alone, resumed):
+        for (name, a), b in zip(straight["model"].state_dict().items(), other["model"].state_dict().values()):
+            assert torch.equal(a, b), name
 
 
 def test_training_keeps_its_last_update_and_an_interrupted_one(tmp_path, monkeypatch, capsys):
@@ -1485,7 +1489,7 @@ def test_a_new_ppo_setting_is_one_field_and_round_trips_through_a_checkpoint_and
     monkeypatch.setattr(of, "PPOSettings", extended)
     run = tmp_path / "run"
     small = ["--set", "batch_steps=32", "--set", "hidden=8", "--set", "minibatch=16", "--set", "epochs=1"]
-    assert of.main(["train", "--task", "ap", "--out", str(run), "--steps", "32", "--workers", "1",
+    assert of.main(["train", "--task", "ap", "--out", str(run), "--steps", "32", "--streams", "1",
                     "--set", "momentum=0.7", *small]) == 0
     assert of.read_checkpoint(run / "checkpoint.pt")["settings"]["momentum"] == 0.7
     assert of.main(["train", "--resume", "--out", str(run), "--steps", "64", "--workers", "1"]) == 0
@@ -1510,7 +1514,7 @@ def test_train_runs_in_a_fresh_clone(tmp_path):
         if source.is_file():
             (clone / name).parent.mkdir(parents=True, exist_ok=True)
             (clone / name).write_bytes(source.read_bytes())
-    done = subprocess.run([sys.executable, "objfind.py", "train", "--task", "ip", "--steps", "24", "--workers", "1",
+    done = subprocess.run([sys.executable, "objfind.py", "train", "--task", "ip", "--steps", "24", "--streams", "2",
                            "--set", "batch_steps=24", "--set", "minibatch=12"], cwd=clone, capture_output=True,
                           text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
@@ -2229,3 +2233,64 @@ def test_the_sensor_study_writes_every_point_and_reads_finished_ones_back(tmp_pa
     capsys.readouterr()
     assert of.main(["sensors", "--episodes", "1", "--workers", "1", "--out", str(out)]) == 0
     assert capsys.readouterr().out.splitlines()[:len(table)] == table
+
+
+# --- past one machine: Ray (skipped where Ray is not installed) --------------------------------------
+
+@pytest.fixture(scope="session")
+def local_ray():
+    """One local Ray instance for the session, with this folder as its workers' working directory."""
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, log_to_driver=False, include_dashboard=False,
+             runtime_env={"working_dir": str(HERE), "excludes": of.RAY_EXCLUDES})
+    yield ray
+    ray.shutdown()
+
+
+def test_episodes_on_ray_equal_the_process_pools(local_ray, tmp_path):
+    for backend, extra in (("pool", ["--workers", "2"]), ("ray", ["--ray"])):
+        assert of.main(["eval", "--agent", "gnbv", "--episodes", "4", "--seed", "7", *extra,
+                        "--out", str(tmp_path / f"{backend}.csv")]) == 0
+    timeless = lambda path: [{k: v for k, v in row.items() if k != "decision_ms"} for row in of.read_episodes(path)]
+    assert timeless(tmp_path / "pool.csv") == timeless(tmp_path / "ray.csv")   # all but the measured time
+
+
+def test_training_on_ray_gives_the_weights_of_processes_with_another_worker_count(local_ray, tmp_path):
+    tiny = ["--task", "ap", "--steps", "60", "--set", "batch_steps=30", "--set", "minibatch=16", "--set", "hidden=16",
+            "--streams", "3"]
+    assert of.main(["train", *tiny, "--workers", "1", "--out", str(tmp_path / "pool")]) == 0
+    assert of.main(["train", *tiny, "--workers", "2", "--ray", "--out", str(tmp_path / "ray")]) == 0
+    a, b = (of.read_checkpoint(tmp_path / run / "checkpoint.pt", run=True) for run in ("pool", "ray"))
+    assert a["update"] == b["update"] == 2 and a["rollout_streams"] == b["rollout_streams"] == 3
+    for name, tensor in a["model"].items():
+        assert torch.equal(tensor, b["model"][name]), name
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds Ray's worker processes through /proc")
+@pytest.mark.parametrize("command, victim", [
+    (["eval", "--agent", "gnbv", "--episodes", "200"], b"evaluate_chunk"),
+    (["train", "--steps", "200000", "--set", "batch_steps=400", "--workers", "2"], b"RolloutActor")])
+def test_a_killed_ray_worker_ends_the_command_with_one_line(local_ray, command, victim, tmp_path, capsys):
+    import os
+    import signal
+    import threading
+    import time
+
+    def kill_one():
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            for proc in Path("/proc").iterdir():
+                try:
+                    if proc.name.isdigit() and (proc / "cmdline").read_bytes().startswith(b"ray::" + victim):
+                        time.sleep(2)
+                        os.kill(int(proc.name), signal.SIGKILL)
+                        return
+                except OSError:
+                    continue
+            time.sleep(0.2)
+    killer = threading.Thread(target=kill_one)
+    killer.start()
+    code = of.main([*command, "--ray", "--out", str(tmp_path / ("run" if command[0] == "train" else "x.csv"))])
+    killer.join()
+    said = [line for line in capsys.readouterr().err.replace("\r", "\n").splitlines() if line.startswith("objfind:")]
+    assert code == 2 and len(said) == 1 and "worker process died" in said[0], said
