@@ -2551,8 +2551,9 @@ RAY_EXCLUDES = [".git", "runs", "out", "results", "__pycache__", ".pytest_cache"
 
 
 def connect_ray(address: str):
-    """Ray, connected once per process: `address` "local" starts a Ray instance here, any other joins that
-    cluster. Every worker gets this folder (objfind.py, weights/) as its working directory (README)."""
+    """Ray, connected once per process: `address` "local" joins $RAY_ADDRESS if set (Ray's own rule), else
+    starts a Ray instance here; any other joins that cluster. Every worker gets this folder (objfind.py,
+    weights/) as its working directory (README)."""
     try:
         import ray
     except ImportError:
@@ -4048,8 +4049,8 @@ def build_parser() -> ArgumentParser:
     training.add_argument("--seed", type=seed_arg,
                           help="seeds the network, and each update's env resets and samples (default 0)")
     training.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
-                          help="serve the rollout streams with --workers Ray actors: on a Ray instance started "
-                               "here, or on the cluster at ADDRESS (README: Past one machine)")
+                          help="serve the rollout streams with --workers Ray actors: on the cluster at ADDRESS, "
+                               "else at $RAY_ADDRESS, else on a Ray instance started here (README: Speed)")
     training.add_argument("--out", help="run folder: checkpoint.pt, log.csv, curve.png (default runs/TASK-SCENE)")
     training.add_argument("--resume", action="store_true",
                           help="continue the run in --out from its checkpoint, with the settings it started with")
@@ -4078,8 +4079,8 @@ def build_parser() -> ArgumentParser:
                             help="the information rule: every agent is told its target's size (known, Table II), "
                                  "or no agent is (unknown: the ablation; use another --out for its table)")
     evaluation.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
-                            help="run the episodes as Ray tasks on every CPU of a Ray instance started here, or "
-                                 "of the cluster at ADDRESS (--workers is then Ray's to decide)")
+                            help="run the episodes as Ray tasks on every CPU of the cluster at ADDRESS, else at "
+                                 "$RAY_ADDRESS, else of a Ray instance started here (--workers is then unused)")
     evaluation.add_argument("--out", help="CSV of every episode (with --table: a folder, default results)")
     evaluation.set_defaults(func=cmd_eval)
     bench = commands.add_parser("bench", help="per-stage step time and env steps/s")
