@@ -288,7 +288,8 @@ class Settings:
         "scatter_tries": at_least(1), "pile_layers": at_least(1, 20), "pile_spacing_ratio": above(0),
         "pile_overlap_chance": at_least(0, 1), "exploration_normaliser": above(0),
         "surface_points": at_least(1, 100_000), "seen_min_cos": at_least(0, 0.99), "detection_threshold": above(0, 1),
-        "outline_pixel_share": at_least(0, 1), "area_median_px": (lambda v: v in (0, 3, 5), "0, 3 or 5"), "gnbv_rays": (lambda v: len(v) == 2 and min(v) >= 1, "(columns, rows)"),
+        "outline_pixel_share": at_least(0, 1), "area_median_px": (lambda v: v in (0, 3, 5), "0, 3 or 5"),
+        "gnbv_rays": (lambda v: len(v) == 2 and min(v) >= 1, "(columns, rows)"),
         "gnbv_min_detections": at_least(1), "gnbv_stall_steps": at_least(1), "ges_tries_per_node": at_least(1),
     }
 
@@ -375,8 +376,6 @@ class PPOSettings:
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
 
-    scaled_sensor_errors: ClassVar[tuple] = ("tof_noise_ratio", "tof_missing_share", "hand_eye_error_m",
-                                             "hand_eye_error_rad")   # what sensor_error_scale multiplies
     default_limit: ClassVar[tuple] = (lambda v: True, "finite")
     limits: ClassVar[dict] = {   # a range for some fields, as (test, meaning); every field must be finite
         "hidden": at_least(1, 1024), "batch_steps": at_least(1, 1_000_000), "epochs": at_least(1, 1000),
@@ -3080,9 +3079,10 @@ def run_sensor_study(out: Path, episodes: int, seed: int, workers: int) -> dict:
     runs = [((agent, task, weights), point) for agent, task, weights in SENSOR_AGENTS for point in sensor_points()]
     runs += [((agent, task, None), point) for agent, task in SENSOR_BASELINES
              for point in sensor_points() if point[0] in ("ideal", "rig camera")]
+    policies = {row: learned_policy(row[0], row[1], row[2] and default_weights(*row[:2]).with_name(row[2]))
+                for row in {row for row, _ in runs} if row[0] in LEARNED}   # each checkpoint read once
     for (agent, task, weights), (sweep, level, overrides) in runs:
-        policy = learned_policy(agent, task, weights and default_weights(agent, task).with_name(weights)) \
-            if agent in LEARNED else None
+        policy = policies.get((agent, task, weights))
         path = out / point_file(agent, task, weights, sweep, level)
         rows = stored_cell(path, seeds, cell_origin(agent, task, "cubes", policy, overrides))
         if rows is None:
