@@ -235,7 +235,8 @@ class Settings:
     gnbv_rays: tuple = (16, 12)         # GNBV casts this grid of rays per candidate view
     gnbv_min_detections: int = 3        # GNBV centres the target once this many detection voxels agree
     gnbv_stall_voxels: int = 50         # GNBV has explored all one-step moves can reach when no sampled
-    gnbv_stall_steps: int = 3           # view would reveal this many voxels (of its 16 x 12 rays) 3 times
+    gnbv_stall_steps: int = 3           # view would reveal this many voxels (of its 16 x 12 rays) 3 times;
+                                        # both counts are of voxels of state_voxel_m, scaled to the volume's
     ges_clearance_m: float = 0.01       # GES sweeps with its fingertips this far above a nominal cube
     ges_tries_per_node: int = 3         # GES gives up a node it cannot reach (a pile) after this many
 
@@ -441,6 +442,11 @@ def surface_derivative(points: np.ndarray, axis: int) -> np.ndarray:
     return np.where(use_forward[..., None], forward, backward)
 
 
+def outline_of(mask: np.ndarray) -> np.ndarray:
+    """The pixels of a (H, W) mask with a 4-neighbour outside it."""
+    return mask & ~(np.roll(mask, 1, 0) & np.roll(mask, -1, 0) & np.roll(mask, 1, 1) & np.roll(mask, -1, 1))
+
+
 def back_project(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(H, W, 3) camera-frame points of a depth image's pixel centres, depth along z."""
     rows, cols = np.mgrid[0:depth_m.shape[0], 0:depth_m.shape[1]] + 0.5
@@ -526,10 +532,11 @@ class TSDFVolume:
         return boxes
 
     def integrate(self, depth_m: np.ndarray, detections: np.ndarray, K: np.ndarray,
-                  T_world_camera: np.ndarray) -> int:
+                  T_world_camera: np.ndarray, rgb_outline: np.ndarray | None = None) -> int:
         """Fuse one view, (H, W) depth in metres along z (0: no return) and (H, W) detection scores in [0, 1], by
         the weighted running average of Curless & Levoy (1996), weights capped at max_weight (2: two new views
-        overwrite what a push moved). Returns the number of voxels observed for the first time."""
+        overwrite what a push moved). rgb_outline: the depth pixels on the detections' outline in a separate RGB
+        camera's image. Returns the number of voxels observed for the first time."""
         # 1. the voxels the view sees: flat indices, their signed distance to their pixel's surface, the pixel
         seen = self._voxels_in_view(depth_m, K, T_world_camera) if np.any(depth_m > 0) else None
         if seen is None:
@@ -556,7 +563,7 @@ class TSDFVolume:
         det[flat] = det_new
         weight[flat] = np.minimum(w_sum, self.max_weight)
         # 4. the target surface seen, for the searchers' stop rule
-        self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_new)
+        self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_new, rgb_outline)
         return newly
 
     def _voxels_in_view(self, depth_m, K, T_world_camera):
@@ -590,7 +597,7 @@ class TSDFVolume:
             return None
         return np.concatenate(flats), np.concatenate(sdfs), np.concatenate(pixels)
 
-    def _mark_target_surface(self, depth_m, detections, K, T_world_camera, flat, det_new) -> None:
+    def _mark_target_surface(self, depth_m, detections, K, T_world_camera, flat, det_new, rgb_outline) -> None:
         """Keep `target_area`: per cell, the most target surface (m^2) one view saw in it, from the detected
         pixels back-projected with the area each covers. The detection band itself cannot say how much of a small
         target was seen (it is as thick as a cube, half of it carved by the next view). A cell's area is
@@ -613,7 +620,8 @@ class TSDFVolume:
         # difference), so pixels along the target's outline do not borrow the depth jump to the
         # background. A pixel seeing its surface more obliquely than the ground truth's limit counts
         # nothing; a pixel on the outline of the detections, partly target at best (or a sliver of a
-        # face seen nearly edge-on), counts half. Each pixel is split into 2 x 2 sub-pixels carrying
+        # face seen nearly edge-on), counts half; with a separate RGB camera, so does a pixel on the outline in
+        # its image, which spans several depth pixels and is registered only that well. Each pixel is split into 2 x 2 sub-pixels carrying
         # a quarter of its area, so that area lands in the right voxel even when a pixel is as large
         # as a voxel (far views). On a noisy depth camera the derivatives are taken on its depth
         # median-filtered (area_median_px): noise roughens a surface, and a rough surface has more area.
@@ -621,8 +629,9 @@ class TSDFVolume:
         points = back_project(smooth_m, K)
         pixel_area = np.linalg.norm(np.cross(surface_derivative(points, 1), surface_derivative(points, 0)), axis=-1)
         pixel_area[pixel_area * self.seen_min_cos > (depth_m / K[0, 0]) ** 2] = 0.0
-        outline = detected & ~(np.roll(detected, 1, 0) & np.roll(detected, -1, 0)
-                               & np.roll(detected, 1, 1) & np.roll(detected, -1, 1))
+        outline = outline_of(detected)
+        if rgb_outline is not None:
+            outline |= rgb_outline & detected
         pixel_area[outline] *= self.outline_pixel_share
         v, u = np.nonzero(detected)
         z = np.repeat(depth_m[v, u], 4)
@@ -847,9 +856,13 @@ class Searcher:
         over the RGB image, or that (H', W', 3) image for our colour detector. Returns the voxels seen first."""
         if detections is None:
             detections = detect_target(rgb)
+        rgb_outline = None
+        if not self.rig.one_camera:
+            rgb_outline = self.rig.detections_in_depth_image(
+                outline_of(detections > self.detection_threshold).astype(np.float32), depth_m) > 0
         detections = self.rig.detections_in_depth_image(detections, depth_m)
         self.views += 1
-        return self.volume.integrate(depth_m, detections, self.rig.depth.K, T_world_depth)
+        return self.volume.integrate(depth_m, detections, self.rig.depth.K, T_world_depth, rgb_outline)
 
     def state(self, T_world_tool: np.ndarray) -> np.ndarray:
         """The 71 values of Fig. 2 around a gripper pose; the detection sum in units of the told target's
@@ -957,9 +970,12 @@ class GreedyNextBestView:
 
     def __init__(self, cfg: Settings, seed: int | None = None):
         self.rng = np.random.default_rng(seed)
-        self.samples, self.rays, self.min_detections = cfg.gnbv_samples, cfg.gnbv_rays, cfg.gnbv_min_detections
-        self.explored_to_stop = cfg.gnbv_explored_to_stop
-        self.stall_voxels, self.stall_steps = cfg.gnbv_stall_voxels, cfg.gnbv_stall_steps
+        self.samples, self.rays, self.explored_to_stop = cfg.gnbv_samples, cfg.gnbv_rays, cfg.gnbv_explored_to_stop
+        # The same volumes at any voxel size: detection voxels fill a band of fixed thickness (a count grows
+        # as 1 / voxel^3), the voxels rays reach lie along the rays (1 / voxel).
+        finer = cfg.state_voxel_m / cfg.voxel_m
+        self.min_detections = int(round(cfg.gnbv_min_detections * finer ** 3))
+        self.stall_voxels, self.stall_steps = int(round(cfg.gnbv_stall_voxels * finer)), cfg.gnbv_stall_steps
         # the workspace's floor and walls, which rays hit: the robot knows the box it searches
         self.wall_thickness_m, self.wall_height_m = cfg.wall_thickness_m, cfg.wall_height_m
 
