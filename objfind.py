@@ -182,6 +182,8 @@ class Settings:
     sensor_error_scale: tuple = (1.0, 1.0)   # domain randomisation (training): each episode multiplies the
                                         # depth noise, missing returns and hand-eye error by a factor drawn
                                         # uniformly from this range; (1, 1) draws nothing
+    rig_camera_share: float = 0.0       # domain randomisation (training): this share of episodes is searched
+                                        # through RIG_SENSING's cameras and errors, the rest through these
     # gripper
     gripper_mass_kg: float = 0.5
     gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper
@@ -281,6 +283,7 @@ class Settings:
         "rgb_offset_m": (lambda v: len(v) == 3 and max(map(abs, v)) <= 0.2, "(x, y, z), each within 0.2 m"),
         "tof_noise_ratio": at_least(0, 0.2), "tof_missing_share": at_least(0, 1), "tof_edge_drop_share": at_least(0, 1),
         "hand_eye_error_m": at_least(0, 0.05), "hand_eye_error_rad": at_least(0, 0.2),
+        "rig_camera_share": at_least(0, 1),
         "sensor_error_scale": (lambda v: len(v) == 2 and 0 <= v[0] <= v[1] <= 4, "(low, high), 0 <= low <= high <= 4"),
         "near_m": above(0), "gripper_force_n": above(0), "max_roll_rad": at_least(0, 1.5), "ceiling_ratio": above(0),
         "gripper_start_tries": at_least(1), "reach_tol_m": above(0), "reach_tol_rad": above(0), "stall_m": above(0),
@@ -632,6 +635,8 @@ class TSDFVolume:
         outline = outline_of(detected)
         if rgb_outline is not None:
             outline |= rgb_outline & detected
+        if self.area_median_px:   # a noisy camera's outline pixels fly between the surfaces: no slant to tell
+            pixel_area[outline] = np.minimum(pixel_area[outline], (depth_m[outline] / K[0, 0]) ** 2)
         pixel_area[outline] *= self.outline_pixel_share
         v, u = np.nonzero(detected)
         z = np.repeat(depth_m[v, u], 4)
@@ -1908,6 +1913,10 @@ class ObjectFindingEnv(gym.Env):
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (STATE_SIZE,), np.float32)
         self.searcher = Searcher(self.cfg)
         self.rig = self.searcher.rig   # the cameras as mounted; reset() adds the episode's hand-eye error
+        self.worlds = [(self.cfg, self.searcher)]   # the sensing an episode may draw (rig_camera_share)
+        if self.cfg.rig_camera_share > 0:
+            rig_cfg = dataclasses.replace(self.cfg, **RIG_SENSING)
+            self.worlds.append((rig_cfg, Searcher(rig_cfg)))
         self.sim = PhysicsClient()
         self.view: WristView | None = None
 
@@ -2032,7 +2041,11 @@ class ObjectFindingEnv(gym.Env):
         rng = self.np_random
         self._build_scene(rng)
         self._place_gripper(rng)
-        self.sensing = episode_sensing(self.cfg, rng)   # the sensor errors this episode's world applies
+        if len(self.worlds) > 1:
+            cfg, self.searcher = self.worlds[int(rng.random() < self.cfg.rig_camera_share)]
+        else:
+            cfg = self.cfg
+        self.sensing = episode_sensing(cfg, rng)   # the sensor errors this episode's world applies
         self.rig = mounted_rig(self.searcher.rig, rng, self.sensing)
         # the information rule: what the searcher is told of the target's size (the nominal cube's if absent)
         self.searcher.reset(self.target_area_m2 if self.cfg.target_size_known else self.cfg.nominal_target_area_m2)

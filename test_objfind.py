@@ -2061,6 +2061,32 @@ def test_detections_of_an_offset_rgb_camera_land_on_the_target_in_the_depth_imag
     env.close()
 
 
+def test_a_depth_pixel_on_the_rgb_cameras_outline_of_the_detections_counts_half():
+    # the depth camera has twice the RGB camera's pixels per side, the same field of view and no offset:
+    # each RGB pixel covers 2 x 2 depth pixels, and a 20 x 20 RGB-pixel detection covers 40 x 40
+    cfg = dataclasses.replace(of.TASKS["ap"], depth_width=160, depth_height=120, depth_fov_y_deg=45.0)
+    searcher = of.Searcher(cfg)
+    assert not searcher.rig.one_camera
+    detections = np.zeros((60, 80), np.float32)
+    detections[20:40, 30:50] = 1.0
+    height_m = 0.3                      # above a target face 5 cm over the floor
+    searcher.observe(np.full((120, 160), height_m, np.float32), looking_down(height_m + 0.05), detections=detections)
+    pixel_m2 = (height_m / searcher.rig.depth.K[0, 0]) ** 2
+    band = 40 * 40 - 36 * 36            # depth pixels under the RGB outline: the outer 2 of the 40 x 40 square
+    depth_outline = 4 * 40 - 4          # what one RGB-D camera's outline would have been
+    assert np.isclose(searcher.volume.seen_target_area_m2(), (40 * 40 - band / 2) * pixel_m2, rtol=0.01)
+    assert not np.isclose(searcher.volume.seen_target_area_m2(), (40 * 40 - depth_outline / 2) * pixel_m2, rtol=0.02)
+
+
+def test_gnbv_counts_the_same_volumes_at_any_voxel_size():
+    for task in ("ap", "ap-large", "ip"):   # the presets' volumes have the state's voxels: the counts as set
+        gnbv = of.GreedyNextBestView(of.TASKS[task], 0)
+        assert (gnbv.min_detections, gnbv.stall_voxels) == (3, 50)
+    finer = dataclasses.replace(of.TASKS["ap"], voxels_per_side=200)    # 3 mm voxels, the state's 6 mm
+    gnbv = of.GreedyNextBestView(finer, 0)
+    assert gnbv.min_detections == 3 * 2 ** 3 and gnbv.stall_voxels == 50 * 2
+
+
 # --- the real setup's presets ------------------------------------------------------------------------
 
 def scene_fingerprint(task: str, scene: str, seeds) -> str:
