@@ -2078,6 +2078,45 @@ def test_a_depth_pixel_on_the_rgb_cameras_outline_of_the_detections_counts_half(
     assert not np.isclose(searcher.volume.seen_target_area_m2(), (40 * 40 - depth_outline / 2) * pixel_m2, rtol=0.02)
 
 
+def test_flying_pixels_on_a_noisy_cameras_outline_add_no_target_area():
+    # a 40 x 40-pixel target face 4 cm above the floor; its outline's pixels return depths between the two
+    # surfaces, as a time-of-flight camera's do; on such a camera (area_median_px) they count their frontal
+    # area at most, so the face's perceived area stays that of the clean image
+    cfg = dataclasses.replace(of.TASKS["ap"], depth_width=160, depth_height=120, depth_fov_y_deg=45.0,
+                              rgb_offset_m=(0.0, 0.0, 0.0), area_median_px=3)
+    clean = np.full((120, 160), 0.34, np.float32)
+    clean[40:80, 60:100] = 0.30
+    flying = clean.copy()
+    ring = of.outline_of(clean < 0.32)
+    flying[ring] = np.random.default_rng(0).uniform(0.30, 0.34, ring.sum())
+    detections = np.zeros((60, 80), np.float32)
+    detections[20:40, 30:50] = 1.0
+    areas = []
+    for depth in (clean, flying):
+        searcher = of.Searcher(cfg)
+        searcher.observe(depth, looking_down(0.35), detections=detections)
+        areas.append(searcher.volume.seen_target_area_m2())
+    assert areas[0] > 0 and abs(areas[1] / areas[0] - 1) < 0.05
+
+
+def test_rig_camera_share_draws_the_rigs_camera_for_that_share_of_episodes():
+    env = of.ObjectFindingEnv("ip", "cubes", rig_camera_share=0.5)
+    widths = []
+    for seed in range(10):
+        state, _ = env.reset(seed=seed)
+        widths.append(env.searcher.rig.depth.width)
+        assert state.shape == (of.STATE_SIZE,)
+        if widths[-1] == of.RIG_SENSING["depth_width"]:
+            assert env.sensing.tof_noise_ratio == of.RIG_SENSING["tof_noise_ratio"]
+            assert env.view.depth_m.shape == (of.RIG_SENSING["depth_height"], of.RIG_SENSING["depth_width"])
+        else:
+            assert env.sensing.tof_noise_ratio == 0 and env.view.depth_m.shape == (60, 80)
+    assert set(widths) == {80, of.RIG_SENSING["depth_width"]}
+    env.reset(seed=3)
+    assert env.searcher.rig.depth.width == widths[3]   # a seed's episode draws the same camera
+    env.close()
+
+
 def test_gnbv_counts_the_same_volumes_at_any_voxel_size():
     for task in ("ap", "ap-large", "ip"):   # the presets' volumes have the state's voxels: the counts as set
         gnbv = of.GreedyNextBestView(of.TASKS[task], 0)
