@@ -609,11 +609,13 @@ class TSDFVolume:
         if area_seen.any():   # area lives only while the channel still holds a confident detection
             if self.voxel_of_cell is None:
                 area_seen[flat] *= det_new > self.detection_threshold
-            else:   # a cell is judged by the voxel at its centre, when this view updated it
+            else:   # a cell is judged by the voxel at its centre, when this view updated it; that voxel is a
+                # thin sample of the cell, which a view registered a few mm off misses: the cell forgets at half
+                # the threshold, after repeated misses (a push, a carve), not the first
                 cells = np.flatnonzero(area_seen)
                 voxels, updated = self.voxel_of_cell[cells], np.zeros(self.detections.size, bool)
                 updated[flat] = True
-                faded = updated[voxels] & (self.detections.reshape(-1)[voxels] <= self.detection_threshold)
+                faded = updated[voxels] & (self.detections.reshape(-1)[voxels] <= self.detection_threshold / 2)
                 area_seen[cells[faded]] = 0.0
         detected = (detections > self.detection_threshold) & (depth_m > 0)
         if not detected.any():

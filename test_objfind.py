@@ -2117,6 +2117,17 @@ def test_rig_camera_share_draws_the_rigs_camera_for_that_share_of_episodes():
     env.close()
 
 
+def test_a_finer_volume_keeps_a_cells_target_area_through_one_view_that_misses_it():
+    volume = of.TSDFVolume(of.TASKS["ap-real"])     # 3.3 mm voxels, the area counted in 6 mm cells
+    assert volume.voxel_of_cell is not None
+    plane_view(volume, 0.05, detection=1.0, camera_z=0.3)
+    seen = volume.seen_target_area_m2()
+    plane_view(volume, 0.05, detection=0.0, camera_z=0.3)   # one view misregistered by a few mm
+    assert seen > 0 and volume.seen_target_area_m2() == seen
+    plane_view(volume, 0.05, detection=0.0, camera_z=0.3, times=3)   # the target pushed away
+    assert volume.seen_target_area_m2() == 0.0
+
+
 def test_gnbv_counts_the_same_volumes_at_any_voxel_size():
     for task in ("ap", "ap-large", "ip"):   # the presets' volumes have the state's voxels: the counts as set
         gnbv = of.GreedyNextBestView(of.TASKS[task], 0)
