@@ -606,16 +606,17 @@ class TSDFVolume:
         target was seen (it is as thick as a cube, half of it carved by the next view). A cell's area is
         cleared when the detections of its voxels fall to the threshold (carved, or forgotten after a push)."""
         area_seen = self.target_area.reshape(-1)
+        # Detections from a separate RGB camera are registered to about one of its pixels, so a view that misses
+        # a cell is expected: the cell forgets at half the threshold, after repeated misses (a push, a carve).
+        forget_at = self.detection_threshold / 2 if rgb_outline is not None else self.detection_threshold
         if area_seen.any():   # area lives only while the channel still holds a confident detection
             if self.voxel_of_cell is None:
-                area_seen[flat] *= det_new > self.detection_threshold
-            else:   # a cell is judged by the voxel at its centre, when this view updated it; that voxel is a
-                # thin sample of the cell, which a view registered a few mm off misses: the cell forgets at half
-                # the threshold, after repeated misses (a push, a carve), not the first
+                area_seen[flat] *= det_new > forget_at
+            else:   # a cell is judged by the voxel at its centre, when this view updated it
                 cells = np.flatnonzero(area_seen)
                 voxels, updated = self.voxel_of_cell[cells], np.zeros(self.detections.size, bool)
                 updated[flat] = True
-                faded = updated[voxels] & (self.detections.reshape(-1)[voxels] <= self.detection_threshold / 2)
+                faded = updated[voxels] & (self.detections.reshape(-1)[voxels] <= forget_at)
                 area_seen[cells[faded]] = 0.0
         detected = (detections > self.detection_threshold) & (depth_m > 0)
         if not detected.any():
