@@ -604,7 +604,8 @@ class TSDFVolume:
         """Keep `target_area`: per cell, the most target surface (m^2) one view saw in it, from the detected
         pixels back-projected with the area each covers. The detection band itself cannot say how much of a small
         target was seen (it is as thick as a cube, half of it carved by the next view). A cell's area is
-        cleared when the detections of its voxels fall to the threshold (carved, or forgotten after a push)."""
+        cleared when the detections of its voxels fall to the threshold, or half of it with a separate RGB
+        camera (carved, or forgotten after a push)."""
         area_seen = self.target_area.reshape(-1)
         # Detections from a separate RGB camera are registered to about one of its pixels, so a view that misses
         # a cell is expected: the cell forgets at half the threshold, after repeated misses (a push, a carve).
