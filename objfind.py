@@ -786,8 +786,8 @@ class Rig:
         return self.rgb is self.depth and np.array_equal(self.T_depth_rgb, np.eye(4))
 
     def detections_in_depth_image(self, detections: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
-        """The RGB image's (H', W') detection scores at each depth pixel, (H, W): the pixel back-projected
-        by its depth, moved into the RGB camera, and the score read where it projects (0 off the image)."""
+        """The RGB image's (H', W') detection scores (or (H', W', C) values) at each depth pixel, (H, W[, C]): the
+        pixel back-projected by its depth, moved into the RGB camera, and read where it projects (0 off the image)."""
         if self.one_camera:
             return detections
         K_rgb, T_rgb_depth = self.rgb.K, np.linalg.inv(self.T_depth_rgb)
@@ -796,7 +796,7 @@ class Rig:
         u = np.floor(K_rgb[0, 0] * in_rgb[..., 0] / z + K_rgb[0, 2]).astype(np.int64)
         v = np.floor(K_rgb[1, 1] * in_rgb[..., 1] / z + K_rgb[1, 2]).astype(np.int64)
         hit = (depth_m > 0) & np.isfinite(z) & (u >= 0) & (u < self.rgb.width) & (v >= 0) & (v < self.rgb.height)
-        out = np.zeros(depth_m.shape, np.float32)
+        out = np.zeros(depth_m.shape + detections.shape[2:], np.float32)
         out[hit] = detections[v[hit], u[hit]]
         return out
 
@@ -866,10 +866,10 @@ class Searcher:
         if detections is None:
             detections = detect_target(rgb)
         rgb_outline = None
-        if not self.rig.one_camera:
-            rgb_outline = self.rig.detections_in_depth_image(
-                outline_of(detections > self.detection_threshold).astype(np.float32), depth_m) > 0
-        detections = self.rig.detections_in_depth_image(detections, depth_m)
+        if not self.rig.one_camera:   # the detections' outline in the RGB image travels with them, in one mapping
+            both = self.rig.detections_in_depth_image(
+                np.stack([detections, outline_of(detections > self.detection_threshold)], axis=-1), depth_m)
+            detections, rgb_outline = np.ascontiguousarray(both[..., 0]), both[..., 1] > 0
         self.views += 1
         return self.volume.integrate(depth_m, detections, self.rig.depth.K, T_world_depth, rgb_outline)
 
