@@ -430,6 +430,7 @@ def detect_target(rgb: np.ndarray) -> np.ndarray:
 # Volume (Sec. III-B.1): a numpy TSDF with a detection channel, carving and max weight 2.
 # ================================================================================================
 
+FRUSTUM_MARGIN_M = 1e-4   # a column this near the frustum's outline is still projected (float32 rounding)
 MIN_PROJECTION_Z_M = np.float32(1e-3)   # guards the division by z; the renderer's near plane cuts depth anyway
 
 
@@ -490,19 +491,21 @@ class TSDFVolume:
         self.column_xy = [c.reshape(-1) for c in np.meshgrid(self.axes[0], self.axes[1], indexing="ij")]
         self.flat_index = np.arange(nx * ny * nz, dtype=np.int32).reshape(self.shape)
         self.observed_count = 0   # running count of voxels with weight > 0, kept by integrate()
+        self.area_marked = False  # whether target_area may hold any: spares a pass over it per view
 
     def reset(self) -> None:
         self.tsdf.fill(0.0), self.weight.fill(0.0), self.detections.fill(0.0)
         self.target_area.fill(0.0)
-        self.observed_count = 0
+        self.observed_count, self.area_marked = 0, False
 
     def explored_fraction(self) -> float:
         return self.observed_count / self.weight.size
 
     def frustum_boxes(self, depth_m, K, T_world_camera, slabs: int = 3) -> list:
-        """Index boxes bounding the camera's frustum up to the farthest depth, one per slab of z-layers: a slab's
-        part of the pyramid (its corners in the slab, its 8 edges cut at the slab's planes) is narrower than the
-        whole, so far fewer voxels are projected. Three slabs measured fastest: more cost more numpy calls."""
+        """(index box, (n, 2) xy corners) bounding the camera's frustum up to the farthest depth, one per slab of
+        z-layers: a slab's part of the pyramid (its corners in the slab, its 8 edges cut at the slab's planes) is
+        narrower than the whole, so far fewer voxels are projected. Three slabs measured fastest: more cost more
+        numpy calls. The corners' xy bound the slab's part as seen from above (frustum_columns)."""
         H, W = depth_m.shape
         far = float(depth_m.max()) + self.trunc_m
         u = np.array([0, W, W, 0], np.float64)
@@ -531,8 +534,27 @@ class TSDFVolume:
             hi = np.ceil((points.max(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int)
             lo, hi = np.clip(lo, 0, self.shape[:2]), np.clip(hi, 0, self.shape[:2])
             if np.all(hi > lo):
-                boxes.append((slice(lo[0], hi[0]), slice(lo[1], hi[1]), slice(k0, k1)))
+                boxes.append(((slice(lo[0], hi[0]), slice(lo[1], hi[1]), slice(k0, k1)), points[:, :2]))
         return boxes
+
+    def frustum_columns(self, box, corners_xy: np.ndarray) -> np.ndarray:
+        """(a, b) bool over a box's columns: those whose centre lies in the convex hull of the slab's frustum
+        corners seen from above (grown by FRUSTUM_MARGIN_M). A voxel of any other column lies outside the
+        frustum, so it cannot project into the image: about half of a box's voxels are never projected."""
+        hull = cv2.convexHull(corners_xy.astype(np.float32)).reshape(-1, 2).astype(np.float64)   # (e, 2) in order
+        x, y = self.axes[0][box[0]].astype(np.float64), self.axes[1][box[1]].astype(np.float64)
+        edges = np.roll(hull, -1, 0) - hull
+        turn = np.sign(np.sum(hull[:, 0] * edges[:, 1] - hull[:, 1] * edges[:, 0]))   # the outline's orientation
+        if len(hull) < 3 or turn == 0:   # a degenerate outline: keep the whole box
+            return np.ones((len(x), len(y)), bool)
+        # inside every edge's half-plane (the hull is convex): (e, a, b) cross products at once
+        cross = (edges[:, 0, None, None] * (y[None, None, :] - hull[:, 1, None, None])
+                 - edges[:, 1, None, None] * (x[None, :, None] - hull[:, 0, None, None]))
+        return np.all(turn * cross >= -FRUSTUM_MARGIN_M * np.hypot(edges[:, 0], edges[:, 1])[:, None, None], axis=0)
+        for p, edge in zip(hull, edges):   # inside every edge's half-plane (the hull is convex)
+            cross = edge[0] * (y[None, :] - p[1]) - edge[1] * (x[:, None] - p[0])
+            inside &= turn * cross >= -FRUSTUM_MARGIN_M * np.hypot(*edge)
+        return inside
 
     def integrate(self, depth_m: np.ndarray, detections: np.ndarray, K: np.ndarray,
                   T_world_camera: np.ndarray, rgb_outline: np.ndarray | None = None) -> int:
@@ -546,6 +568,8 @@ class TSDFVolume:
             return 0
         flat, sdf, pixel = seen
         tsdf, weight, det = (a.reshape(-1) for a in (self.tsdf, self.weight, self.detections))
+        if self.observed_count == 0:   # an empty volume takes the first view as it is: no averaging
+            return self._first_view(depth_m, detections, K, T_world_camera, seen, rgb_outline)
         w_old = weight[flat]
         newly = int(np.count_nonzero(w_old == 0))
         self.observed_count += newly
@@ -569,23 +593,36 @@ class TSDFVolume:
         self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_new, rgb_outline)
         return newly
 
+    def _first_view(self, depth_m, detections, K, T_world_camera, seen, rgb_outline) -> int:
+        """integrate() into an empty volume: each voxel seen takes the view's values at weight 1, what the
+        average gives, without reading the volume."""
+        flat, sdf, pixel = seen
+        det_obs = detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m)
+        det_obs[sdf >= self.trunc_m] = 0.0
+        self.tsdf.reshape(-1)[flat] = np.minimum(1.0, sdf * (1.0 / self.trunc_m))
+        self.detections.reshape(-1)[flat] = det_obs
+        self.weight.reshape(-1)[flat] = 1.0
+        self.observed_count = len(flat)
+        self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_obs, rgb_outline)
+        return len(flat)
+
     def _voxels_in_view(self, depth_m, K, T_world_camera):
         """(flat index, signed distance, pixel) of each voxel that projects onto a depth return and lies in
         front of it or up to trunc_m behind; None when the frustum misses the volume. Pixel coordinates are
         (fx x + cx z) / z and (fy y + cy z) / z, and x, y, z are linear in the voxel centre: each numerator is
-        a sum of three 1-D terms broadcast over a box, not a 3 x 3 product per voxel."""
+        a sum of three 1-D terms broadcast over the box's columns in the frustum, not a 3 x 3 product per voxel."""
         H, W = depth_m.shape
         world_to_pixel = (K @ T_world_camera[:3, :3].T).astype(np.float32)   # (3, 3) rows give u z, v z, z
         t = T_world_camera[:3, 3].astype(np.float32)
         flats, sdfs, pixels = [], [], []
-        for box in self.frustum_boxes(depth_m, K, T_world_camera):
+        for box, corners_xy in self.frustum_boxes(depth_m, K, T_world_camera):
             offsets = [ax[b] - t[i] for i, (ax, b) in enumerate(zip(self.axes, box))]   # 1-D, from the camera
+            i, j = np.nonzero(self.frustum_columns(box, corners_xy))   # (m,) the columns in the frustum
 
             def along_box(row):
-                return ((row[0] * offsets[0])[:, None, None] + (row[1] * offsets[1])[None, :, None]
-                        + (row[2] * offsets[2])[None, None, :])
+                return ((row[0] * offsets[0])[i] + (row[1] * offsets[1])[j])[:, None] + (row[2] * offsets[2])[None, :]
 
-            z = along_box(world_to_pixel[2])     # (a, b, c) depth of each voxel along the optical axis
+            z = along_box(world_to_pixel[2])     # (m, c) depth of each voxel along the optical axis
             u = along_box(world_to_pixel[0]) / z
             v = along_box(world_to_pixel[1]) / z
             valid = (z > MIN_PROJECTION_Z_M) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
@@ -593,7 +630,7 @@ class TSDFVolume:
             depth = depth_m.reshape(-1)[pixel]
             sdf = depth - z[valid]
             keep = (depth > 0) & (sdf >= -self.trunc_m)   # behind the surface by more than trunc: unseen
-            flats.append(self.flat_index[box][valid][keep])
+            flats.append(self.flat_index[box][i, j][valid][keep])
             sdfs.append(sdf[keep])
             pixels.append(pixel[keep])
         if not flats:
@@ -610,7 +647,7 @@ class TSDFVolume:
         # Detections from a separate RGB camera are registered to about one of its pixels, so a view that misses
         # a cell is expected: the cell forgets at half the threshold, after repeated misses (a push, a carve).
         forget_at = self.detection_threshold / 2 if rgb_outline is not None else self.detection_threshold
-        if area_seen.any():   # area lives only while the channel still holds a confident detection
+        if self.area_marked:   # area lives only while the channel still holds a confident detection
             if self.voxel_of_cell is None:
                 area_seen[flat] *= det_new > forget_at
             else:   # a cell is judged by the voxel at its centre, when this view updated it
@@ -654,6 +691,7 @@ class TSDFVolume:
         area = np.repeat(pixel_area[v, u], 4)[inside] / 4
         voxels, which = np.unique(flat_hit, return_inverse=True)
         area_seen[voxels] = np.maximum(area_seen[voxels], np.bincount(which, weights=area))
+        self.area_marked = True
 
     def seen_target_area_m2(self) -> float:
         """The target surface the volume holds as seen (m^2): what the searchers' stop rule divides."""
@@ -1766,17 +1804,18 @@ def scatter_positions(objects: list, cfg: Settings, rng: np.random.Generator) ->
     """(xyz, yaw) resting poses apart from each other, by rejection; an object with no room is
     dropped from above onto whatever lies below."""
     half = cfg.workspace_m / 2
-    placed, poses = [], []
-    for obj in objects:
+    placed_xy, placed_r, poses = np.zeros((len(objects), 2)), np.zeros(len(objects)), []
+    for n, obj in enumerate(objects):
         r = obj.radius_m
+        clearance = r + placed_r[:n] + cfg.scatter_gap_m   # (n,) centre distance each placed object needs
         for _ in range(cfg.scatter_tries):
             xy = rng.uniform(-half + r, half - r, 2)
-            if all(np.linalg.norm(xy - q) > r + rq + cfg.scatter_gap_m for q, rq in placed):
+            if np.all(np.hypot(*(placed_xy[:n] - xy).T) > clearance):
                 z = obj.half_height_m + cfg.drop_gap_m
                 break
         else:
             z = obj.half_height_m + cfg.no_room_drop_m
-        placed.append((xy, r))
+        placed_xy[n], placed_r[n] = xy, r
         poses.append((np.r_[xy, z], rng.uniform(-np.pi, np.pi)))
     return poses
 
