@@ -186,7 +186,9 @@ class Settings:
                                         # through RIG_SENSING's cameras and errors, the rest through these
     # gripper
     gripper_mass_kg: float = 0.5
-    gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper
+    gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper ...
+    gripper_erp: float = 0.3            # ... closing this share of the gap to its pose per step (Bullet's joint
+                                        # ERP; its 0.2 spends half a move's steps on the last centimetre)
     max_roll_rad: float = 1.0           # tilt limit
     ceiling_ratio: float = 0.75         # the end-effector rises to this x workspace_m, above the volume
     fingertip_clearance_m: float = 0.005  # lowest fingertip height above the floor
@@ -196,16 +198,18 @@ class Settings:
     reach_tol_m: float = 0.003          # an action's pose counts as reached within this distance ...
     reach_tol_rad: float = 0.02         # ... and this angle
     stall_m: float = 0.0005             # the gripper stalls (a wall, a heavy pile) if it moves less per check
+                                        # (REACH_CHECK_S)
     # physics
-    physics_hz: int = 240
+    physics_hz: int = 240               # while the gripper moves: at its top speed, about 2 m/s, a step is 9 mm,
+                                        # under its fingers' 12 mm (at 120 Hz they pass through a cube)
+    settle_hz: int = 120                # while objects come to rest: half the steps, each under 1 cm
     solver_iterations: int = 10         # enough for stable piles, 3x cheaper than pybullet's 50
-    max_substeps: int = 120             # to reach one action's pose, 0.5 s of simulated time at most
-    settle_substeps: int = 24           # then at most 0.1 s for pushed objects to come to rest (the next move
-                                        # steps physics if they still roll: each step's observation waits less)
+    move_limit_s: float = 0.5           # simulated time the gripper has to reach one action's pose
+    settle_s: float = 0.1               # then for pushed objects to come to rest (the next move steps physics
+                                        # if they still roll: each step's observation waits less)
     settle_speed: float = 0.02          # objects slower than this (m/s) count as at rest
-    new_scene_hz: int = 120             # a new scene settles at half the physics rate: half the cost, unseen
-    settle_scatter_substeps: int = 120  # a new scene: 1 s for scattered objects to come to rest ...
-    settle_pile_substeps: int = 240     # ... 2 s for piles
+    settle_scatter_s: float = 1.0       # a new scene: for scattered objects to come to rest ...
+    settle_pile_s: float = 2.0          # ... and for piles
     wall_height_m: float = 0.1
     wall_thickness_m: float = 0.02
     # scenes: scattered objects
@@ -285,10 +289,11 @@ class Settings:
         "hand_eye_error_m": at_least(0, 0.05), "hand_eye_error_rad": at_least(0, 0.2),
         "rig_camera_share": at_least(0, 1),
         "sensor_error_scale": (lambda v: len(v) == 2 and 0 <= v[0] <= v[1] <= 4, "(low, high), 0 <= low <= high <= 4"),
-        "near_m": above(0), "gripper_force_n": above(0), "max_roll_rad": at_least(0, 1.5), "ceiling_ratio": above(0),
+        "near_m": above(0), "gripper_force_n": above(0), "gripper_erp": above(0, 1), "max_roll_rad": at_least(0, 1.5), "ceiling_ratio": above(0),
         "gripper_start_tries": at_least(1), "reach_tol_m": above(0), "reach_tol_rad": above(0), "stall_m": above(0),
-        "physics_hz": at_least(1), "new_scene_hz": at_least(1), "solver_iterations": at_least(1),
-        "max_substeps": at_least(1), "settle_speed": above(0), "wall_height_m": above(0), "wall_thickness_m": above(0),
+        "physics_hz": at_least(1), "settle_hz": at_least(1), "solver_iterations": at_least(1), "move_limit_s": above(0, 60),
+        "settle_s": at_least(0, 60), "settle_scatter_s": at_least(0, 60), "settle_pile_s": at_least(0, 60),
+        "settle_speed": above(0), "wall_height_m": above(0), "wall_thickness_m": above(0),
         "scatter_tries": at_least(1), "pile_layers": at_least(1, 20), "pile_spacing_ratio": above(0),
         "pile_overlap_chance": at_least(0, 1), "exploration_normaliser": above(0),
         "surface_points": at_least(1, 100_000), "seen_min_cos": at_least(0, 0.99), "detection_threshold": above(0, 1),
@@ -490,11 +495,12 @@ class TSDFVolume:
         self.column_xy = [c.reshape(-1) for c in np.meshgrid(self.axes[0], self.axes[1], indexing="ij")]
         self.flat_index = np.arange(nx * ny * nz, dtype=np.int32).reshape(self.shape)
         self.observed_count = 0   # running count of voxels with weight > 0, kept by integrate()
+        self.area_marked = False  # whether target_area may hold any: spares a pass over it per view
 
     def reset(self) -> None:
         self.tsdf.fill(0.0), self.weight.fill(0.0), self.detections.fill(0.0)
         self.target_area.fill(0.0)
-        self.observed_count = 0
+        self.observed_count, self.area_marked = 0, False
 
     def explored_fraction(self) -> float:
         return self.observed_count / self.weight.size
@@ -546,6 +552,8 @@ class TSDFVolume:
             return 0
         flat, sdf, pixel = seen
         tsdf, weight, det = (a.reshape(-1) for a in (self.tsdf, self.weight, self.detections))
+        if self.observed_count == 0:   # an empty volume takes the first view as it is: no averaging
+            return self._first_view(depth_m, detections, K, T_world_camera, seen, rgb_outline)
         w_old = weight[flat]
         newly = int(np.count_nonzero(w_old == 0))
         self.observed_count += newly
@@ -568,6 +576,19 @@ class TSDFVolume:
         # 4. the target surface seen, for the searchers' stop rule
         self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_new, rgb_outline)
         return newly
+
+    def _first_view(self, depth_m, detections, K, T_world_camera, seen, rgb_outline) -> int:
+        """integrate() into an empty volume: each voxel seen takes the view's values at weight 1, what the
+        average gives, without reading the volume."""
+        flat, sdf, pixel = seen
+        det_obs = detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m)
+        det_obs[sdf >= self.trunc_m] = 0.0
+        self.tsdf.reshape(-1)[flat] = np.minimum(1.0, sdf * (1.0 / self.trunc_m))
+        self.detections.reshape(-1)[flat] = det_obs
+        self.weight.reshape(-1)[flat] = 1.0
+        self.observed_count = len(flat)
+        self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_obs, rgb_outline)
+        return len(flat)
 
     def _voxels_in_view(self, depth_m, K, T_world_camera):
         """(flat index, signed distance, pixel) of each voxel that projects onto a depth return and lies in
@@ -610,7 +631,7 @@ class TSDFVolume:
         # Detections from a separate RGB camera are registered to about one of its pixels, so a view that misses
         # a cell is expected: the cell forgets at half the threshold, after repeated misses (a push, a carve).
         forget_at = self.detection_threshold / 2 if rgb_outline is not None else self.detection_threshold
-        if area_seen.any():   # area lives only while the channel still holds a confident detection
+        if self.area_marked:   # area lives only while the channel still holds a confident detection
             if self.voxel_of_cell is None:
                 area_seen[flat] *= det_new > forget_at
             else:   # a cell is judged by the voxel at its centre, when this view updated it
@@ -654,6 +675,7 @@ class TSDFVolume:
         area = np.repeat(pixel_area[v, u], 4)[inside] / 4
         voxels, which = np.unique(flat_hit, return_inverse=True)
         area_seen[voxels] = np.maximum(area_seen[voxels], np.bincount(which, weights=area))
+        self.area_marked = True
 
     def seen_target_area_m2(self) -> float:
         """The target surface the volume holds as seen (m^2): what the searchers' stop rule divides."""
@@ -1766,17 +1788,18 @@ def scatter_positions(objects: list, cfg: Settings, rng: np.random.Generator) ->
     """(xyz, yaw) resting poses apart from each other, by rejection; an object with no room is
     dropped from above onto whatever lies below."""
     half = cfg.workspace_m / 2
-    placed, poses = [], []
-    for obj in objects:
+    placed_xy, placed_r, poses = np.zeros((len(objects), 2)), np.zeros(len(objects)), []
+    for n, obj in enumerate(objects):
         r = obj.radius_m
+        clearance = r + placed_r[:n] + cfg.scatter_gap_m   # (n,) centre distance each placed object needs
         for _ in range(cfg.scatter_tries):
             xy = rng.uniform(-half + r, half - r, 2)
-            if all(np.linalg.norm(xy - q) > r + rq + cfg.scatter_gap_m for q, rq in placed):
+            if np.all(np.hypot(*(placed_xy[:n] - xy).T) > clearance):
                 z = obj.half_height_m + cfg.drop_gap_m
                 break
         else:
             z = obj.half_height_m + cfg.no_room_drop_m
-        placed.append((xy, r))
+        placed_xy[n], placed_r[n] = xy, r
         poses.append((np.r_[xy, z], rng.uniform(-np.pi, np.pi)))
     return poses
 
@@ -1811,22 +1834,27 @@ def pile_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> li
     return poses
 
 
-SETTLE_CHECK_EVERY = 8   # physics steps between checks that everything is at rest (a check costs a few)
+SETTLE_CHECK_S = 1 / 30   # simulated time between checks that everything is at rest (a check costs a few steps)
 
 
-def settle(sim, objects: list, cfg: Settings, max_steps: int) -> bool:
-    """Step physics until every object is slower than settle_speed, then put them all to sleep; False if
-    still moving. pybullet only lets bodies sleep after 2 s at rest; sending them to sleep at once keeps
+def settle(sim, objects: list, cfg: Settings, max_s: float) -> bool:
+    """Step physics at settle_hz for at most max_s until every object is slower than settle_speed, then put
+    them all to sleep; False if still moving. pybullet only lets bodies sleep after 2 s at rest; sending them to sleep at once keeps
     later physics steps cheap (a resting pile then costs nothing until something touches it)."""
-    for step in range(max_steps):
-        sim.stepSimulation()
-        if step % SETTLE_CHECK_EVERY == SETTLE_CHECK_EVERY - 1:
-            speeds = [sum(c * c for c in sim.getBaseVelocity(o.body)[0]) for o in objects]
-            if max(speeds, default=0.0) < cfg.settle_speed ** 2:
-                for o in objects:
-                    sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
-                return True
-    return False
+    every = max(1, round(SETTLE_CHECK_S * cfg.settle_hz))
+    sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.settle_hz)
+    try:
+        for step in range(round(max_s * cfg.settle_hz)):
+            sim.stepSimulation()
+            if step % every == every - 1:
+                speeds = [sum(c * c for c in sim.getBaseVelocity(o.body)[0]) for o in objects]
+                if max(speeds, default=0.0) < cfg.settle_speed ** 2:
+                    for o in objects:
+                        sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
+                    return True
+        return False
+    finally:
+        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz)
 
 
 def target_surface(target: SceneObject, cfg: Settings, rng: np.random.Generator):
@@ -1862,9 +1890,7 @@ def build_scene(sim, cfg: Settings, scene: str, rng: np.random.Generator) -> Sce
     poses = (pile_positions if heaped else scatter_positions)(objects, cfg, rng)
     for obj, (xyz, yaw) in zip(objects, poses):
         sim.resetBasePositionAndOrientation(obj.body, xyz, quat_of(rotation(yaw, "z") @ obj.rest))
-    sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.new_scene_hz)
-    settle(sim, objects, cfg, cfg.settle_pile_substeps if heaped else cfg.settle_scatter_substeps)
-    sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz)
+    settle(sim, objects, cfg, cfg.settle_pile_s if heaped else cfg.settle_scatter_s)
     if target_present:
         points, normals, area = target_surface(objects[0], cfg, rng)
     else:
@@ -1880,7 +1906,7 @@ def build_scene(sim, cfg: Settings, scene: str, rng: np.random.Generator) -> Sce
 # ================================================================================================
 
 SWEEP_MARGIN_M = 0.005  # the box swept by one move, grown by this before asking what it touches
-REACH_CHECK_EVERY = 4   # physics steps between checks of the gripper's progress towards an action's pose
+REACH_CHECK_S = 1 / 60   # simulated time between checks of the gripper's progress towards an action's pose
 OUTSIDE_VIEW = (320, 240)   # width, height of render() and of each demo panel
 
 
@@ -2062,7 +2088,8 @@ class ObjectFindingEnv(gym.Env):
         cfg, sim = self.cfg, self.sim
         sim.new_world()
         sim.setGravity(0, 0, -9.81)
-        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, numSolverIterations=cfg.solver_iterations)
+        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, numSolverIterations=cfg.solver_iterations,
+                                      erp=cfg.gripper_erp)
         self.gripper, self.constraint = build_workspace(sim, cfg)
         scene = build_scene(sim, cfg, self.scene, rng)
         self.objects, self.target_present, self.heaped = scene.objects, scene.target_present, scene.heaped
@@ -2118,9 +2145,10 @@ class ObjectFindingEnv(gym.Env):
         q_goal = quat_of(R_goal)
         sim.changeConstraint(self.constraint, goal.tolist(), q_goal, maxForce=cfg.gripper_force_n)
         last = T_world_tool[:3, 3]
-        for substep in range(1, cfg.max_substeps + 1):
+        every = max(1, round(REACH_CHECK_S * cfg.physics_hz))
+        for substep in range(1, round(cfg.move_limit_s * cfg.physics_hz) + 1):
             sim.stepSimulation()
-            if substep % REACH_CHECK_EVERY == 0:
+            if substep % every == 0:
                 pos, orn = sim.getBasePositionAndOrientation(self.gripper)
                 pos = np.array(pos)
                 angle = 2 * np.arccos(min(1.0, abs(float(np.dot(orn, q_goal)))))
@@ -2129,7 +2157,7 @@ class ObjectFindingEnv(gym.Env):
                 if reached or stalled:
                     break
                 last = pos
-        self.disturbed = not settle(sim, self.objects, cfg, cfg.settle_substeps)
+        self.disturbed = not settle(sim, self.objects, cfg, cfg.settle_s)
 
     # --- pictures ---------------------------------------------------------------------------------
 
@@ -2945,7 +2973,7 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
                   "decision_ms")   # the columns of an evaluation CSV, one row per episode ...
 ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
-WORLD_REVISION = 3   # of the simulated world and the agents: raised by every change that alters the episodes
+WORLD_REVISION = 4   # of the simulated world and the agents: raised by every change that alters the episodes
                      # of a seed (2: mesh models as hulls, placed resting; scenes settle at 120 Hz; one 20 % rule)
 
 

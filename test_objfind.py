@@ -289,9 +289,9 @@ def test_every_scene_setting_changes_the_scene():
     """A student who edits a Settings field sees the scene change: no hidden copy of it in the builder."""
     piles = dict(num_piles=2, pile_margin_ratio=0.3, pile_min_apart_ratio=0.1, pile_layers=5, pile_spacing_ratio=1.2, pile_layer_cost=2.0,
                  pile_spot_noise=0.5, pile_jitter_ratio=0.3, pile_layer_gap_m=0.03, drop_gap_m=0.02,
-                 settle_pile_substeps=16, settle_speed=0.5, object_size_m=0.05, object_mass_kg=0.3,
+                 settle_pile_s=0.15, settle_speed=0.5, object_size_m=0.05, object_mass_kg=0.3,
                  object_friction=0.2, wall_height_m=0.3)
-    scattered = dict(scatter_gap_m=0.05, settle_scatter_substeps=4, drop_gap_m=0.02, object_size_m=0.05)
+    scattered = dict(scatter_gap_m=0.05, settle_scatter_s=0.02, drop_gap_m=0.02, object_size_m=0.05)
     unchanged = []
     for s, changes in ((of.TASKS["ip"], piles), (of.TASKS["ap"], scattered)):
         base = scene_positions(s)
@@ -512,7 +512,7 @@ def test_a_push_through_a_hand_built_pile_reveals_the_buried_target():
         for o, (x, y, layer) in zip(env.objects, spots):
             sim.resetBasePositionAndOrientation(o.body, [1.02 * a * x, 1.02 * a * y, a / 2 + 0.001 + layer * (a + 0.002)],
                                                 [0, 0, 0, 1])
-        assert of.settle(sim, env.objects, env.cfg, env.cfg.settle_pile_substeps)
+        assert of.settle(sim, env.objects, env.cfg, env.cfg.settle_pile_s)
         env.searcher.volume.reset()
         env.target_seen[:] = False
 
@@ -2161,10 +2161,10 @@ def scene_fingerprint(task: str, scene: str, seeds) -> str:
 
 
 @pytest.mark.parametrize("task, scene, fingerprint", [
-    ("ap", "cubes", "0e89e09a95557721"), ("ip", "cubes", "7b74256a0116f4e9"),
-    ("ip", "variable-primitives", "ba9cece349cfecda"), ("ap-large", "cubes", "0ec7e5e3077c9bc4")])
+    ("ap", "cubes", "b46831ab0b4d0173"), ("ip", "cubes", "5a49cd9d91d61a79"),
+    ("ip", "variable-primitives", "ba9cece349cfecda"), ("ap-large", "cubes", "92a0806709024983")])
 def test_scene_generation_for_small_workspaces_leaves_the_simulation_presets_exactly(task, scene, fingerprint):
-    """Pile margins and spacing scale with the workspace; at 0.6 m and 1.2 m the scenes are those of world 3."""
+    """Pile margins and spacing scale with the workspace; at 0.6 m and 1.2 m the scenes are those of world 4."""
     assert scene_fingerprint(task, scene, range(3)) == fingerprint
 
 
