@@ -435,6 +435,7 @@ def detect_target(rgb: np.ndarray) -> np.ndarray:
 # Volume (Sec. III-B.1): a numpy TSDF with a detection channel, carving and max weight 2.
 # ================================================================================================
 
+FRUSTUM_MARGIN_M = 1e-4   # a column this near the frustum's outline is still projected (float32 rounding)
 MIN_PROJECTION_Z_M = np.float32(1e-3)   # guards the division by z; the renderer's near plane cuts depth anyway
 
 
@@ -506,9 +507,10 @@ class TSDFVolume:
         return self.observed_count / self.weight.size
 
     def frustum_boxes(self, depth_m, K, T_world_camera, slabs: int = 3) -> list:
-        """Index boxes bounding the camera's frustum up to the farthest depth, one per slab of z-layers: a slab's
-        part of the pyramid (its corners in the slab, its 8 edges cut at the slab's planes) is narrower than the
-        whole, so far fewer voxels are projected. Three slabs measured fastest: more cost more numpy calls."""
+        """(index box, (n, 2) xy corners) bounding the camera's frustum up to the farthest depth, one per slab of
+        z-layers: a slab's part of the pyramid (its corners in the slab, its 8 edges cut at the slab's planes) is
+        narrower than the whole, so far fewer voxels are projected. Three slabs measured fastest: more cost more
+        numpy calls. The corners' xy bound the slab's part as seen from above (frustum_columns)."""
         H, W = depth_m.shape
         far = float(depth_m.max()) + self.trunc_m
         u = np.array([0, W, W, 0], np.float64)
@@ -537,8 +539,24 @@ class TSDFVolume:
             hi = np.ceil((points.max(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int)
             lo, hi = np.clip(lo, 0, self.shape[:2]), np.clip(hi, 0, self.shape[:2])
             if np.all(hi > lo):
-                boxes.append((slice(lo[0], hi[0]), slice(lo[1], hi[1]), slice(k0, k1)))
+                boxes.append(((slice(lo[0], hi[0]), slice(lo[1], hi[1]), slice(k0, k1)), points[:, :2]))
         return boxes
+
+    def frustum_columns(self, box, corners_xy: np.ndarray) -> np.ndarray:
+        """(a, b) bool over a box's columns: those whose centre lies in the convex hull of the slab's frustum
+        corners seen from above (grown by FRUSTUM_MARGIN_M). A voxel of any other column lies outside the
+        frustum, so it cannot project into the image: about half of a box's voxels are never projected."""
+        hull = cv2.convexHull(corners_xy.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+        x, y = self.axes[0][box[0]].astype(np.float64), self.axes[1][box[1]].astype(np.float64)
+        inside = np.ones((len(x), len(y)), bool)
+        edges = np.roll(hull, -1, 0) - hull
+        turn = np.sign(np.sum(hull[:, 0] * np.roll(hull, -1, 0)[:, 1] - np.roll(hull, -1, 0)[:, 0] * hull[:, 1]))
+        if len(hull) < 3 or turn == 0:   # a degenerate outline: keep the whole box
+            return inside
+        for p, edge in zip(hull, edges):   # inside every edge's half-plane (the hull is convex)
+            cross = edge[0] * (y[None, :] - p[1]) - edge[1] * (x[:, None] - p[0])
+            inside &= turn * cross >= -FRUSTUM_MARGIN_M * np.hypot(*edge)
+        return inside
 
     def integrate(self, depth_m: np.ndarray, detections: np.ndarray, K: np.ndarray,
                   T_world_camera: np.ndarray, rgb_outline: np.ndarray | None = None) -> int:
@@ -594,19 +612,19 @@ class TSDFVolume:
         """(flat index, signed distance, pixel) of each voxel that projects onto a depth return and lies in
         front of it or up to trunc_m behind; None when the frustum misses the volume. Pixel coordinates are
         (fx x + cx z) / z and (fy y + cy z) / z, and x, y, z are linear in the voxel centre: each numerator is
-        a sum of three 1-D terms broadcast over a box, not a 3 x 3 product per voxel."""
+        a sum of three 1-D terms broadcast over the box's columns in the frustum, not a 3 x 3 product per voxel."""
         H, W = depth_m.shape
         world_to_pixel = (K @ T_world_camera[:3, :3].T).astype(np.float32)   # (3, 3) rows give u z, v z, z
         t = T_world_camera[:3, 3].astype(np.float32)
         flats, sdfs, pixels = [], [], []
-        for box in self.frustum_boxes(depth_m, K, T_world_camera):
+        for box, corners_xy in self.frustum_boxes(depth_m, K, T_world_camera):
             offsets = [ax[b] - t[i] for i, (ax, b) in enumerate(zip(self.axes, box))]   # 1-D, from the camera
+            i, j = np.nonzero(self.frustum_columns(box, corners_xy))   # (m,) the columns in the frustum
 
             def along_box(row):
-                return ((row[0] * offsets[0])[:, None, None] + (row[1] * offsets[1])[None, :, None]
-                        + (row[2] * offsets[2])[None, None, :])
+                return ((row[0] * offsets[0])[i] + (row[1] * offsets[1])[j])[:, None] + (row[2] * offsets[2])[None, :]
 
-            z = along_box(world_to_pixel[2])     # (a, b, c) depth of each voxel along the optical axis
+            z = along_box(world_to_pixel[2])     # (m, c) depth of each voxel along the optical axis
             u = along_box(world_to_pixel[0]) / z
             v = along_box(world_to_pixel[1]) / z
             valid = (z > MIN_PROJECTION_Z_M) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
@@ -614,7 +632,7 @@ class TSDFVolume:
             depth = depth_m.reshape(-1)[pixel]
             sdf = depth - z[valid]
             keep = (depth > 0) & (sdf >= -self.trunc_m)   # behind the surface by more than trunc: unseen
-            flats.append(self.flat_index[box][valid][keep])
+            flats.append(self.flat_index[box][i, j][valid][keep])
             sdfs.append(sdf[keep])
             pixels.append(pixel[keep])
         if not flats:
@@ -1326,6 +1344,9 @@ class PhysicsClient(BulletClient):
         self.resetSimulation()
         self._shapes.clear()
 
+    def shape_count(self) -> int:
+        return len(self._shapes)
+
     def shapes(self, key, make) -> tuple:
         """(collision, visual) shape ids for `key`, made by make() once per world and shared by its bodies."""
         if key not in self._shapes:
@@ -1748,6 +1769,9 @@ def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) 
                        rest, model)
 
 
+GRIPPER_PARKED_M = (0.0, 0.0, 1.0)   # the gripper waits here, above the walls, while a scene settles
+
+
 def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
     """Floor, four walls and the gripper on its constraint; returns the (gripper, constraint) ids. The
     gripper's only visual is a transparent speck (TinyRenderer would draw its collision shapes into the
@@ -1768,9 +1792,9 @@ def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
     col = sim.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, collisionFramePositions=centres)
     speck = sim.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=GRIPPER_BOXES[0][1],
                                  rgbaColor=(0, 0, 0, 0))
-    gripper = sim.createMultiBody(cfg.gripper_mass_kg, col, speck, [0, 0, 1])
+    gripper = sim.createMultiBody(cfg.gripper_mass_kg, col, speck, GRIPPER_PARKED_M)
     sim.changeDynamics(gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
-    constraint = sim.createConstraint(gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], [0, 0, 1])
+    constraint = sim.createConstraint(gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], GRIPPER_PARKED_M)
     return gripper, constraint
 
 
@@ -1834,6 +1858,8 @@ def pile_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> li
     return poses
 
 
+MAX_KEPT_SHAPES = 400   # a world kept across resets starts anew past this many shapes (variable primitives
+                        # make new ones every scene; Bullet frees shapes only with the world)
 SETTLE_CHECK_S = 1 / 30   # simulated time between checks that everything is at rest (a check costs a few steps)
 
 
@@ -1948,6 +1974,7 @@ class ObjectFindingEnv(gym.Env):
             rig_cfg = dataclasses.replace(self.cfg, **RIG_SENSING)
             self.worlds.append((rig_cfg, Searcher(rig_cfg)))
         self.sim = PhysicsClient()
+        self.workspace, self.objects = None, []   # (gripper, constraint) of the world, kept across resets
         self.view: WristView | None = None
 
     # --- one step: the data flow of Fig. 2 ------------------------------------------------------
@@ -2084,14 +2111,27 @@ class ObjectFindingEnv(gym.Env):
         return self.searcher.state(self.gripper_pose()), self._info()
 
     def _build_scene(self, rng) -> None:
-        """A fresh world: physics settings, the workspace with the gripper, then a drawn scene."""
+        """The workspace (floor, walls, the gripper on its constraint) and the shapes made so far, kept from the
+        last episode, then a drawn scene. Bullet sorts its overlapping pairs (deterministicOverlappingPairs),
+        so the bodies a world held before do not change its physics: the scene is a fresh world's."""
         cfg, sim = self.cfg, self.sim
-        sim.new_world()
-        sim.setGravity(0, 0, -9.81)
-        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, numSolverIterations=cfg.solver_iterations,
-                                      erp=cfg.gripper_erp)
-        self.gripper, self.constraint = build_workspace(sim, cfg)
-        scene = build_scene(sim, cfg, self.scene, rng)
+        try:
+            if self.workspace is None or sim.shape_count() > MAX_KEPT_SHAPES:
+                sim.new_world()
+                sim.setGravity(0, 0, -9.81)
+                sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, numSolverIterations=cfg.solver_iterations,
+                                              erp=cfg.gripper_erp, deterministicOverlappingPairs=1)
+                self.workspace = build_workspace(sim, cfg)
+            else:
+                for o in reversed(self.objects):   # the last made first: new bodies get the ids a fresh world gives
+                    sim.removeBody(o.body)
+            self.objects = []
+            self.gripper, self.constraint = self.workspace
+            self._teleport(np.array(GRIPPER_PARKED_M), np.eye(3))   # out of the new scene's way, as when made
+            scene = build_scene(sim, cfg, self.scene, rng)
+        except BaseException:
+            self.workspace = None   # a scene left half built: the next reset starts a new world
+            raise
         self.objects, self.target_present, self.heaped = scene.objects, scene.target_present, scene.heaped
         self.target_points, self.target_normals = scene.target_points, scene.target_normals
         self.target_area_m2 = scene.target_area_m2
@@ -2973,7 +3013,7 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
                   "decision_ms")   # the columns of an evaluation CSV, one row per episode ...
 ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
-WORLD_REVISION = 4   # of the simulated world and the agents: raised by every change that alters the episodes
+WORLD_REVISION = 5   # of the simulated world and the agents: raised by every change that alters the episodes
                      # of a seed (2: mesh models as hulls, placed resting; scenes settle at 120 Hz; one 20 % rule)
 
 
