@@ -289,10 +289,11 @@ class Settings:
         "hand_eye_error_m": at_least(0, 0.05), "hand_eye_error_rad": at_least(0, 0.2),
         "rig_camera_share": at_least(0, 1),
         "sensor_error_scale": (lambda v: len(v) == 2 and 0 <= v[0] <= v[1] <= 4, "(low, high), 0 <= low <= high <= 4"),
-        "near_m": above(0), "gripper_force_n": above(0), "gripper_erp": above(0, 1), "max_roll_rad": at_least(0, 1.5), "ceiling_ratio": above(0),
+        "near_m": above(0), "gripper_force_n": above(0), "gripper_erp": above(0, 1), "max_roll_rad": at_least(0, 1.5),
+        "ceiling_ratio": above(0),
         "gripper_start_tries": at_least(1), "reach_tol_m": above(0), "reach_tol_rad": above(0), "stall_m": above(0),
-        "physics_hz": at_least(1), "settle_hz": at_least(1), "solver_iterations": at_least(1), "move_limit_s": above(0, 60),
-        "settle_s": at_least(0, 60), "settle_scatter_s": at_least(0, 60), "settle_pile_s": at_least(0, 60),
+        "physics_hz": at_least(1), "settle_hz": at_least(1), "solver_iterations": at_least(1),
+        "move_limit_s": above(0, 60), "settle_s": at_least(0, 60), "settle_scatter_s": at_least(0, 60), "settle_pile_s": at_least(0, 60),
         "settle_speed": above(0), "wall_height_m": above(0), "wall_thickness_m": above(0),
         "scatter_tries": at_least(1), "pile_layers": at_least(1, 20), "pile_spacing_ratio": above(0),
         "pile_overlap_chance": at_least(0, 1), "exploration_normaliser": above(0),
@@ -546,13 +547,16 @@ class TSDFVolume:
         """(a, b) bool over a box's columns: those whose centre lies in the convex hull of the slab's frustum
         corners seen from above (grown by FRUSTUM_MARGIN_M). A voxel of any other column lies outside the
         frustum, so it cannot project into the image: about half of a box's voxels are never projected."""
-        hull = cv2.convexHull(corners_xy.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+        hull = cv2.convexHull(corners_xy.astype(np.float32)).reshape(-1, 2).astype(np.float64)   # (e, 2) in order
         x, y = self.axes[0][box[0]].astype(np.float64), self.axes[1][box[1]].astype(np.float64)
-        inside = np.ones((len(x), len(y)), bool)
         edges = np.roll(hull, -1, 0) - hull
-        turn = np.sign(np.sum(hull[:, 0] * np.roll(hull, -1, 0)[:, 1] - np.roll(hull, -1, 0)[:, 0] * hull[:, 1]))
+        turn = np.sign(np.sum(hull[:, 0] * edges[:, 1] - hull[:, 1] * edges[:, 0]))   # the outline's orientation
         if len(hull) < 3 or turn == 0:   # a degenerate outline: keep the whole box
-            return inside
+            return np.ones((len(x), len(y)), bool)
+        # inside every edge's half-plane (the hull is convex): (e, a, b) cross products at once
+        cross = (edges[:, 0, None, None] * (y[None, None, :] - hull[:, 1, None, None])
+                 - edges[:, 1, None, None] * (x[None, :, None] - hull[:, 0, None, None]))
+        return np.all(turn * cross >= -FRUSTUM_MARGIN_M * np.hypot(edges[:, 0], edges[:, 1])[:, None, None], axis=0)
         for p, edge in zip(hull, edges):   # inside every edge's half-plane (the hull is convex)
             cross = edge[0] * (y[None, :] - p[1]) - edge[1] * (x[:, None] - p[0])
             inside &= turn * cross >= -FRUSTUM_MARGIN_M * np.hypot(*edge)
@@ -1865,8 +1869,8 @@ SETTLE_CHECK_S = 1 / 30   # simulated time between checks that everything is at 
 
 def settle(sim, objects: list, cfg: Settings, max_s: float) -> bool:
     """Step physics at settle_hz for at most max_s until every object is slower than settle_speed, then put
-    them all to sleep; False if still moving. pybullet only lets bodies sleep after 2 s at rest; sending them to sleep at once keeps
-    later physics steps cheap (a resting pile then costs nothing until something touches it)."""
+    them all to sleep; False if still moving. pybullet only lets bodies sleep after 2 s at rest; sending them
+    to sleep at once keeps later physics steps cheap (a resting pile then costs nothing until touched)."""
     every = max(1, round(SETTLE_CHECK_S * cfg.settle_hz))
     sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.settle_hz)
     try:
@@ -2119,8 +2123,8 @@ class ObjectFindingEnv(gym.Env):
             if self.workspace is None or sim.shape_count() > MAX_KEPT_SHAPES:
                 sim.new_world()
                 sim.setGravity(0, 0, -9.81)
-                sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, numSolverIterations=cfg.solver_iterations,
-                                              erp=cfg.gripper_erp, deterministicOverlappingPairs=1)
+                sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, erp=cfg.gripper_erp,
+                                              numSolverIterations=cfg.solver_iterations, deterministicOverlappingPairs=1)
                 self.workspace = build_workspace(sim, cfg)
             else:
                 for o in reversed(self.objects):   # the last made first: new bodies get the ids a fresh world gives
