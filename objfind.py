@@ -557,10 +557,6 @@ class TSDFVolume:
         cross = (edges[:, 0, None, None] * (y[None, None, :] - hull[:, 1, None, None])
                  - edges[:, 1, None, None] * (x[None, :, None] - hull[:, 0, None, None]))
         return np.all(turn * cross >= -FRUSTUM_MARGIN_M * np.hypot(edges[:, 0], edges[:, 1])[:, None, None], axis=0)
-        for p, edge in zip(hull, edges):   # inside every edge's half-plane (the hull is convex)
-            cross = edge[0] * (y[None, :] - p[1]) - edge[1] * (x[:, None] - p[0])
-            inside &= turn * cross >= -FRUSTUM_MARGIN_M * np.hypot(*edge)
-        return inside
 
     def integrate(self, depth_m: np.ndarray, detections: np.ndarray, K: np.ndarray,
                   T_world_camera: np.ndarray, rgb_outline: np.ndarray | None = None) -> int:
@@ -572,10 +568,10 @@ class TSDFVolume:
         seen = self._voxels_in_view(depth_m, K, T_world_camera) if np.any(depth_m > 0) else None
         if seen is None:
             return 0
-        flat, sdf, pixel = seen
-        tsdf, weight, det = (a.reshape(-1) for a in (self.tsdf, self.weight, self.detections))
         if self.observed_count == 0:   # an empty volume takes the first view as it is: no averaging
             return self._first_view(depth_m, detections, K, T_world_camera, seen, rgb_outline)
+        flat, sdf, pixel = seen
+        tsdf, weight, det = (a.reshape(-1) for a in (self.tsdf, self.weight, self.detections))
         w_old = weight[flat]
         newly = int(np.count_nonzero(w_old == 0))
         self.observed_count += newly
@@ -589,8 +585,8 @@ class TSDFVolume:
         # 3. the weighted average, each view weighing 1; detections as a truncated unsigned distance (the
         #    pixel's score fading to 0 at trunc_m), averaged alike and carved out of free space
         w_sum = w_old + 1.0
-        tsdf[flat] = (tsdf[flat] * w_old + np.minimum(1.0, sdf * (1.0 / self.trunc_m))) / w_sum
-        det_obs = detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m)
+        tsdf_obs, det_obs = self._view_values(sdf, pixel, detections)
+        tsdf[flat] = (tsdf[flat] * w_old + tsdf_obs) / w_sum
         det_new = (det[flat] * w_old + det_obs) / w_sum
         det_new[sdf >= self.trunc_m] = 0.0
         det[flat] = det_new
@@ -599,13 +595,19 @@ class TSDFVolume:
         self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_new, rgb_outline)
         return newly
 
+    def _view_values(self, sdf, pixel, detections) -> tuple[np.ndarray, np.ndarray]:
+        """What one view says of its voxels: the TSDF, sdf / trunc_m capped at 1, and the detection channel, the
+        pixel's score fading to 0 at trunc_m from the surface (a truncated unsigned distance)."""
+        return (np.minimum(1.0, sdf * (1.0 / self.trunc_m)),
+                detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m))
+
     def _first_view(self, depth_m, detections, K, T_world_camera, seen, rgb_outline) -> int:
         """integrate() into an empty volume: each voxel seen takes the view's values at weight 1, what the
         average gives, without reading the volume."""
         flat, sdf, pixel = seen
-        det_obs = detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m)
-        det_obs[sdf >= self.trunc_m] = 0.0
-        self.tsdf.reshape(-1)[flat] = np.minimum(1.0, sdf * (1.0 / self.trunc_m))
+        tsdf_obs, det_obs = self._view_values(sdf, pixel, detections)
+        det_obs[sdf >= self.trunc_m] = 0.0   # carved out of free space
+        self.tsdf.reshape(-1)[flat] = tsdf_obs
         self.detections.reshape(-1)[flat] = det_obs
         self.weight.reshape(-1)[flat] = 1.0
         self.observed_count = len(flat)
