@@ -135,6 +135,52 @@ def test_tsdf_of_a_plane_at_a_known_depth():
     assert volume.observed_count == np.count_nonzero((volume.weight > 0))
 
 
+def reference_fusion(volume, depth_m, detections, K, T_world_camera):
+    """TSDF fusion as whole-volume numpy, no culling, with fuse_view's arithmetic: what it must equal."""
+    P, t = (K @ T_world_camera[:3, :3].T).astype(np.float32), T_world_camera[:3, 3].astype(np.float32)
+    terms = [P[:, [axis]] * (volume.axes[axis] - t[axis]) for axis in range(3)]   # float64, (3, n) each
+    u_z, v_z, z = ((terms[0][r][:, None, None] + terms[1][r][None, :, None]) + terms[2][r][None, None, :]
+                   for r in range(3))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = u_z / z, v_z / z
+    H, W = depth_m.shape
+    valid = (z > of.MIN_PROJECTION_Z_M) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    pixel = np.where(valid, v, 0).astype(np.int64) * W + np.where(valid, u, 0).astype(np.int64)
+    depth = depth_m.reshape(-1)[pixel]
+    sdf = depth - z
+    seen = valid & (depth > 0) & (sdf >= -volume.trunc_m)
+    w_old = volume.weight[seen]
+    volume.observed_count += int(np.count_nonzero(w_old == 0))
+    seen[seen] = ~((sdf[seen] >= volume.trunc_m) & (w_old == volume.max_weight) & (volume.tsdf[seen] == 1))
+    sdf, pixel, w_old = sdf[seen], pixel[seen], volume.weight[seen]
+    w_sum = w_old + np.float32(1)
+    volume.tsdf[seen] = (volume.tsdf[seen] * w_old + np.minimum(1.0, sdf * (1.0 / volume.trunc_m))) / w_sum
+    detection = (volume.detections[seen] * w_old
+                 + detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / volume.trunc_m)) / w_sum
+    volume.detections[seen] = np.where(sdf >= volume.trunc_m, 0.0, detection)
+    volume.weight[seen] = np.minimum(w_sum, volume.max_weight)
+
+
+@pytest.mark.parametrize("task", ["ap", "ip-real"])
+def test_compiled_fusion_equals_whole_volume_numpy_fusion(task):
+    """fuse_view skips columns and layers outside the frustum; over an episode's tilted, near and far views
+    its volume must equal, bit for bit, one fused by projecting every voxel."""
+    env = of.ObjectFindingEnv(task, "cubes" if task == "ap" else "cubes-and-cuboids")
+    env.reset(seed=3)
+    fused, reference = of.TSDFVolume(env.cfg), of.TSDFVolume(env.cfg)
+    K, rng = env.searcher.rig.depth.K, np.random.default_rng(5)
+    for action in of.exploring_actions(np.random.default_rng(4), 12):
+        view = env.view
+        scores = rng.random(view.depth_m.shape).astype(np.float32)   # scores everywhere: every band is averaged
+        fused.integrate(view.depth_m, scores, K, view.T_world_camera)
+        reference_fusion(reference, view.depth_m, scores, K, view.T_world_camera)
+        for name in ("tsdf", "weight", "detections"):
+            assert np.array_equal(getattr(fused, name), getattr(reference, name)), name
+        assert fused.observed_count == reference.observed_count > 0
+        env.step(action)
+    env.close()
+
+
 def test_integration_only_touches_the_frustum():
     volume = small_volume()
     plane_view(volume, plane_z=0.0, camera_z=0.1)   # a low camera sees a small patch of floor
