@@ -571,13 +571,12 @@ class TSDFVolume:
     def explored_fraction(self) -> float:
         return self.observed_count / self.weight.size
 
-    def frustum_columns(self, depth_m, K, T_world_camera) -> tuple[int, int, int, int]:
-        """(i0, i1, j0, j1): the columns under the camera's frustum up to the farthest return plus trunc_m,
-        the xy box of its apex and far corners grown by a voxel; no voxel outside it can be updated."""
-        H, W = depth_m.shape
-        far = float(depth_m.max()) + self.trunc_m
+    def frustum_columns(self, image_shape, far_m: float, K, T_world_camera) -> tuple[int, int, int, int]:
+        """(i0, i1, j0, j1): the columns under the camera's frustum up to far_m, the xy box of its apex and
+        far corners grown by a voxel; no voxel outside it can be updated."""
+        H, W = image_shape
         u, v = np.array([0, W, W, 0], np.float64), np.array([0, 0, H, H], np.float64)
-        base = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(4)], 1) * far
+        base = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(4)], 1) * far_m
         corners = np.concatenate([[[0.0, 0.0, 0.0]], base]) @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
         lo = np.floor((corners.min(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int) - 1
         hi = np.ceil((corners.max(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int) + 1
@@ -590,8 +589,11 @@ class TSDFVolume:
         the weighted running average of Curless & Levoy (1996), weights capped at max_weight (2: two new views
         overwrite what a push moved). rgb_outline: the depth pixels on the detections' outline in a separate RGB
         camera's image. Returns the number of voxels observed for the first time."""
-        columns = self.frustum_columns(depth_m, K, T_world_camera)
-        if not np.any(depth_m > 0) or columns[0] >= columns[1] or columns[2] >= columns[3]:
+        if not np.any(depth_m > 0):
+            return 0
+        far_m = float(depth_m.max()) + self.trunc_m   # no voxel farther can be seen
+        columns = self.frustum_columns(depth_m.shape, far_m, K, T_world_camera)
+        if columns[0] >= columns[1] or columns[2] >= columns[3]:
             return 0
         # A voxel centre's pixel is (fx x + cx z) / z, (fy y + cy z) / z with x, y, z linear in the centre: each
         # row of world_to_pixel times the centre's offset from the camera is a sum of three per-axis terms.
@@ -600,7 +602,7 @@ class TSDFVolume:
         terms = [world_to_pixel[:, [axis]] * (self.axes[axis] - t[axis]) for axis in range(3)]   # 3 x (3, n)
         newly, updated = fuse_view(
             self.tsdf, self.weight, self.detections, np.ascontiguousarray(depth_m),
-            np.ascontiguousarray(detections), *terms, columns, float(depth_m.max()) + self.trunc_m, self.trunc_m,
+            np.ascontiguousarray(detections), *terms, columns, far_m, self.trunc_m,
             1.0 / self.trunc_m, np.float32(self.max_weight), self.updated_voxels, self.updated_detections)
         self.observed_count += newly
         self._mark_target_surface(depth_m, detections, K, T_world_camera, self.updated_voxels[:updated],
