@@ -527,6 +527,7 @@ def fuse_view(tsdf, weight, detection, depth_m, scores, terms_x, terms_y, terms_
                 updated += 1
     return newly, updated
 
+
 class TSDFVolume:
     """A TSDF over the workspace plus a detection channel (a truncated *unsigned* distance of detections).
     Voxel (i, j, k) is centred at origin + (i + 0.5, j + 0.5, k + 0.5) voxel_m, the origin at (-size/2, -size/2, 0),
