@@ -11,7 +11,7 @@ Read top to bottom, in the order data flows (Fig. 2: world -> images -> searcher
 
     settings         Settings (Table I presets in TASKS), SCENES, PPOSettings
     perception       detect_target: a CIELAB colour detector
-    volume           TSDFVolume: TSDF + detection channel, carving, max weight 2
+    volume           TSDFVolume: TSDF + detection channel, carving, max weight 2; fuse_view, its voxel loop (Numba)
     encoder          encode_state: the volume around the gripper -> 71 values
     frames           gripper poses; Camera and Rig: the wrist cameras and their calibration
     searcher         Searcher: views in, state out, an action -> the next gripper pose (no simulator)
