@@ -11,7 +11,7 @@ Read top to bottom, in the order data flows (Fig. 2: world -> images -> searcher
 
     settings         Settings (Table I presets in TASKS), SCENES, PPOSettings
     perception       detect_target: a CIELAB colour detector
-    volume           TSDFVolume: TSDF + detection channel, carving, max weight 2
+    volume           TSDFVolume: TSDF + detection channel, carving, max weight 2; fuse_view, its voxel loop (Numba)
     encoder          encode_state: the volume around the gripper -> 71 values
     frames           gripper poses; Camera and Rig: the wrist cameras and their calibration
     searcher         Searcher: views in, state out, an action -> the next gripper pose (no simulator)
@@ -63,6 +63,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import cv2
 import gymnasium as gym
+import numba
 import numpy as np
 import pybullet_data
 import torch
@@ -186,7 +187,9 @@ class Settings:
                                         # through RIG_SENSING's cameras and errors, the rest through these
     # gripper
     gripper_mass_kg: float = 0.5
-    gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper
+    gripper_force_n: float = 40.0       # bound on the constraint force that drives the gripper ...
+    gripper_erp: float = 0.3            # ... closing this share of the gap to its pose per step (Bullet's joint
+                                        # ERP; its 0.2 spends half a move's steps on the last centimetre)
     max_roll_rad: float = 1.0           # tilt limit
     ceiling_ratio: float = 0.75         # the end-effector rises to this x workspace_m, above the volume
     fingertip_clearance_m: float = 0.005  # lowest fingertip height above the floor
@@ -196,16 +199,18 @@ class Settings:
     reach_tol_m: float = 0.003          # an action's pose counts as reached within this distance ...
     reach_tol_rad: float = 0.02         # ... and this angle
     stall_m: float = 0.0005             # the gripper stalls (a wall, a heavy pile) if it moves less per check
+                                        # (REACH_CHECK_S)
     # physics
-    physics_hz: int = 240
+    physics_hz: int = 240               # while the gripper moves: at its top speed, about 2 m/s, a step is 9 mm,
+                                        # under its fingers' 12 mm (at 120 Hz they pass through a cube)
+    settle_hz: int = 120                # while objects come to rest: half the steps, each under 1 cm
     solver_iterations: int = 10         # enough for stable piles, 3x cheaper than pybullet's 50
-    max_substeps: int = 120             # to reach one action's pose, 0.5 s of simulated time at most
-    settle_substeps: int = 24           # then at most 0.1 s for pushed objects to come to rest (the next move
-                                        # steps physics if they still roll: each step's observation waits less)
+    move_limit_s: float = 0.5           # simulated time the gripper has to reach one action's pose
+    settle_s: float = 0.1               # then for pushed objects to come to rest (the next move steps physics
+                                        # if they still roll: each step's observation waits less)
     settle_speed: float = 0.02          # objects slower than this (m/s) count as at rest
-    new_scene_hz: int = 120             # a new scene settles at half the physics rate: half the cost, unseen
-    settle_scatter_substeps: int = 120  # a new scene: 1 s for scattered objects to come to rest ...
-    settle_pile_substeps: int = 240     # ... 2 s for piles
+    settle_scatter_s: float = 1.0       # a new scene: for scattered objects to come to rest ...
+    settle_pile_s: float = 2.0          # ... and for piles
     wall_height_m: float = 0.1
     wall_thickness_m: float = 0.02
     # scenes: scattered objects
@@ -285,10 +290,12 @@ class Settings:
         "hand_eye_error_m": at_least(0, 0.05), "hand_eye_error_rad": at_least(0, 0.2),
         "rig_camera_share": at_least(0, 1),
         "sensor_error_scale": (lambda v: len(v) == 2 and 0 <= v[0] <= v[1] <= 4, "(low, high), 0 <= low <= high <= 4"),
-        "near_m": above(0), "gripper_force_n": above(0), "max_roll_rad": at_least(0, 1.5), "ceiling_ratio": above(0),
+        "near_m": above(0), "gripper_force_n": above(0), "gripper_erp": above(0, 1), "max_roll_rad": at_least(0, 1.5),
+        "ceiling_ratio": above(0),
         "gripper_start_tries": at_least(1), "reach_tol_m": above(0), "reach_tol_rad": above(0), "stall_m": above(0),
-        "physics_hz": at_least(1), "new_scene_hz": at_least(1), "solver_iterations": at_least(1),
-        "max_substeps": at_least(1), "settle_speed": above(0), "wall_height_m": above(0), "wall_thickness_m": above(0),
+        "physics_hz": at_least(1), "settle_hz": at_least(1), "solver_iterations": at_least(1),
+        "move_limit_s": above(0, 60), "settle_s": at_least(0, 60), "settle_scatter_s": at_least(0, 60), "settle_pile_s": at_least(0, 60),
+        "settle_speed": above(0), "wall_height_m": above(0), "wall_thickness_m": above(0),
         "scatter_tries": at_least(1), "pile_layers": at_least(1, 20), "pile_spacing_ratio": above(0),
         "pile_overlap_chance": at_least(0, 1), "exploration_normaliser": above(0),
         "surface_points": at_least(1, 100_000), "seen_min_cos": at_least(0, 0.99), "detection_threshold": above(0, 1),
@@ -427,11 +434,12 @@ def detect_target(rgb: np.ndarray) -> np.ndarray:
 
 
 # ================================================================================================
-# Volume (Sec. III-B.1): a numpy TSDF with a detection channel, carving and max weight 2.
+# Volume (Sec. III-B.1): a TSDF with a detection channel, carving and max weight 2; one loop over voxels,
+# compiled by Numba (as in Zeng's tsdf-fusion-python), the rest numpy.
 # ================================================================================================
 
-FRUSTUM_MARGIN_M = 1e-4   # a column this near the frustum's outline is still projected (float32 rounding)
 MIN_PROJECTION_Z_M = np.float32(1e-3)   # guards the division by z; the renderer's near plane cuts depth anyway
+LAYER_SLACK = 1e-3   # fuse_view: slack (pixels x m, or m) on the layers it visits, far above any rounding
 
 
 def surface_derivative(points: np.ndarray, axis: int) -> np.ndarray:
@@ -455,6 +463,69 @@ def back_project(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(H, W, 3) camera-frame points of a depth image's pixel centres, depth along z."""
     rows, cols = np.mgrid[0:depth_m.shape[0], 0:depth_m.shape[1]] + 0.5
     return np.stack([(cols - K[0, 2]) / K[0, 0] * depth_m, (rows - K[1, 2]) / K[1, 1] * depth_m, depth_m], -1)
+
+
+@numba.njit(cache=True, nogil=True)
+def fuse_view(tsdf, weight, detection, depth_m, scores, terms_x, terms_y, terms_z, columns, far_m, trunc_m,
+              per_trunc_m, max_weight, updated_voxels, updated_detections):
+    """TSDF fusion's loop over voxels: each voxel of the given columns that projects onto a return and lies in
+    front of it or up to trunc_m behind takes the view into its running averages (TSDFVolume.integrate).
+    terms_*: (3, n) per-axis terms of (u z, v z, z). Returns (voxels seen for the first time, voxels updated)
+    and writes the updated ones' flat indices and new detection values to updated_*. Voxel centres and a
+    view's values are float64, the volume float32 (a test: the same volume as whole-volume numpy)."""
+    H, W = depth_m.shape
+    nz = terms_z.shape[1]
+    slope = (terms_z[:, nz - 1] - terms_z[:, 0]) / max(nz - 1, 1)   # (u z, v z, z) per layer
+    newly, updated = 0, 0
+    for i in range(columns[0], columns[1]):
+        for j in range(columns[2], columns[3]):
+            # The layers where a voxel can pass the exact tests below: z > MIN_PROJECTION_Z_M, 0 <= u z < W z,
+            # 0 <= v z < H z and z <= far_m are each a + b k >= 0 along the column, solved with slack.
+            u0 = terms_x[0, i] + terms_y[0, j] + terms_z[0, 0]
+            v0 = terms_x[1, i] + terms_y[1, j] + terms_z[1, 0]
+            z0 = terms_x[2, i] + terms_y[2, j] + terms_z[2, 0]
+            lo, hi = 0.0, nz - 1.0
+            for a, b in ((z0 - MIN_PROJECTION_Z_M, slope[2]), (u0, slope[0]), (W * z0 - u0, W * slope[2] - slope[0]),
+                         (v0, slope[1]), (H * z0 - v0, H * slope[2] - slope[1]), (far_m - z0, -slope[2])):
+                if b > 0.0:
+                    lo = max(lo, (-LAYER_SLACK - a) / b)
+                elif b < 0.0:
+                    hi = min(hi, (a + LAYER_SLACK) / -b)
+                elif a < -LAYER_SLACK:
+                    hi = -1.0
+            if hi < lo:
+                continue
+            for k in range(max(int(np.floor(lo)) - 1, 0), min(int(np.ceil(hi)) + 2, nz)):
+                z = (terms_x[2, i] + terms_y[2, j]) + terms_z[2, k]
+                if not z > MIN_PROJECTION_Z_M:
+                    continue
+                u = ((terms_x[0, i] + terms_y[0, j]) + terms_z[0, k]) / z
+                v = ((terms_x[1, i] + terms_y[1, j]) + terms_z[1, k]) / z
+                if not (u >= 0 and u < W and v >= 0 and v < H):
+                    continue
+                row, col = int(v), int(u)
+                depth = depth_m[row, col]
+                sdf = depth - z
+                if not (depth > 0 and sdf >= -trunc_m):   # no return, or behind the surface by more: unseen
+                    continue
+                w_old = weight[i, j, k]
+                if w_old == 0:
+                    newly += 1
+                if sdf >= trunc_m and w_old == max_weight and tsdf[i, j, k] == 1:
+                    continue   # free space known as free at full weight: averaging 1 into 1 changes nothing
+                # the weighted average, each view weighing 1; detections as a truncated unsigned distance (the
+                # pixel's score fading to 0 at trunc_m), averaged alike and carved out of free space
+                w_sum = w_old + np.float32(1.0)
+                tsdf[i, j, k] = (tsdf[i, j, k] * w_old + min(1.0, sdf * per_trunc_m)) / w_sum
+                detection_new = (detection[i, j, k] * w_old + scores[row, col] * max(0.0, 1.0 - abs(sdf) / trunc_m)) / w_sum
+                if sdf >= trunc_m:
+                    detection_new = 0.0
+                detection[i, j, k] = detection_new
+                weight[i, j, k] = min(w_sum, max_weight)
+                updated_voxels[updated] = (i * tsdf.shape[1] + j) * nz + k
+                updated_detections[updated] = detection_new
+                updated += 1
+    return newly, updated
 
 
 class TSDFVolume:
@@ -483,13 +554,13 @@ class TSDFVolume:
             centres = np.meshgrid(*[(np.arange(n) + 0.5) * self.area_cell_m for n in area_shape], indexing="ij")
             voxels = [np.minimum(np.floor(c / self.voxel_m).astype(np.int64), n - 1) for c, n in zip(centres, self.shape)]
             self.voxel_of_cell = np.ravel_multi_index(tuple(v.reshape(-1) for v in voxels), self.shape)
-        # Voxel centres are separable, so we keep three 1-D axes instead of an (N, 3) array: camera
-        # coordinates of a sub-box then come from broadcasting, never from a matrix product per voxel.
+        # Voxel centres are separable, so we keep three 1-D axes instead of an (N, 3) array: a voxel's
+        # projection is then a sum of three per-axis terms (integrate), never a matrix product per voxel.
         self.axes = [(np.arange(n, dtype=np.float32) + 0.5) * self.voxel_m + o
                      for n, o in zip(self.shape, self.origin)]
-        nx, ny, nz = self.shape
         self.column_xy = [c.reshape(-1) for c in np.meshgrid(self.axes[0], self.axes[1], indexing="ij")]
-        self.flat_index = np.arange(nx * ny * nz, dtype=np.int32).reshape(self.shape)
+        self.updated_voxels = np.zeros(self.tsdf.size, np.int64)         # written by fuse_view: the voxels a
+        self.updated_detections = np.zeros(self.tsdf.size, np.float64)   # view updated, their new detections
         self.observed_count = 0   # running count of voxels with weight > 0, kept by integrate()
         self.area_marked = False  # whether target_area may hold any: spares a pass over it per view
 
@@ -501,56 +572,17 @@ class TSDFVolume:
     def explored_fraction(self) -> float:
         return self.observed_count / self.weight.size
 
-    def frustum_boxes(self, depth_m, K, T_world_camera, slabs: int = 3) -> list:
-        """(index box, (n, 2) xy corners) bounding the camera's frustum up to the farthest depth, one per slab of
-        z-layers: a slab's part of the pyramid (its corners in the slab, its 8 edges cut at the slab's planes) is
-        narrower than the whole, so far fewer voxels are projected. Three slabs measured fastest: more cost more
-        numpy calls. The corners' xy bound the slab's part as seen from above (frustum_columns)."""
-        H, W = depth_m.shape
-        far = float(depth_m.max()) + self.trunc_m
-        u = np.array([0, W, W, 0], np.float64)
-        v = np.array([0, 0, H, H], np.float64)
-        base = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(4)], 1) * far
+    def frustum_columns(self, image_shape, far_m: float, K, T_world_camera) -> tuple[int, int, int, int]:
+        """(i0, i1, j0, j1): the columns under the camera's frustum up to far_m, the xy box of its apex and
+        far corners grown by a voxel; no voxel outside it can be updated."""
+        H, W = image_shape
+        u, v = np.array([0, W, W, 0], np.float64), np.array([0, 0, H, H], np.float64)
+        base = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(4)], 1) * far_m
         corners = np.concatenate([[[0.0, 0.0, 0.0]], base]) @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
-        edges = np.array([[0, 1], [0, 2], [0, 3], [0, 4], [1, 2], [2, 3], [3, 4], [4, 1]])
-        a, b = corners[edges[:, 0]], corners[edges[:, 1]]
-        k_lo = max(int(np.floor((corners[:, 2].min() - self.origin[2]) / self.voxel_m)), 0)
-        k_hi = min(int(np.ceil((corners[:, 2].max() - self.origin[2]) / self.voxel_m)), self.shape[2])
-        slab_voxels = -(-self.shape[2] // slabs)
-        boxes = []
-        for k0 in range(k_lo, k_hi, slab_voxels):
-            k1 = min(k0 + slab_voxels, k_hi)
-            z0, z1 = self.origin[2] + k0 * self.voxel_m, self.origin[2] + k1 * self.voxel_m
-            points = [corners[(corners[:, 2] >= z0) & (corners[:, 2] <= z1)]]
-            for z in (z0, z1):
-                dz = b[:, 2] - a[:, 2]
-                t = np.where(np.abs(dz) > 1e-12, (z - a[:, 2]) / np.where(np.abs(dz) > 1e-12, dz, 1.0), -1.0)
-                crossing = (t >= 0) & (t <= 1)
-                points.append(a[crossing] + t[crossing, None] * (b - a)[crossing])
-            points = np.concatenate(points)
-            if len(points) == 0:
-                continue
-            lo = np.floor((points.min(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int)
-            hi = np.ceil((points.max(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int)
-            lo, hi = np.clip(lo, 0, self.shape[:2]), np.clip(hi, 0, self.shape[:2])
-            if np.all(hi > lo):
-                boxes.append(((slice(lo[0], hi[0]), slice(lo[1], hi[1]), slice(k0, k1)), points[:, :2]))
-        return boxes
-
-    def frustum_columns(self, box, corners_xy: np.ndarray) -> np.ndarray:
-        """(a, b) bool over a box's columns: those whose centre lies in the convex hull of the slab's frustum
-        corners seen from above (grown by FRUSTUM_MARGIN_M). A voxel of any other column lies outside the
-        frustum, so it cannot project into the image: about half of a box's voxels are never projected."""
-        hull = cv2.convexHull(corners_xy.astype(np.float32)).reshape(-1, 2).astype(np.float64)   # (e, 2) in order
-        x, y = self.axes[0][box[0]].astype(np.float64), self.axes[1][box[1]].astype(np.float64)
-        edges = np.roll(hull, -1, 0) - hull
-        turn = np.sign(np.sum(hull[:, 0] * edges[:, 1] - hull[:, 1] * edges[:, 0]))   # the outline's orientation
-        if len(hull) < 3 or turn == 0:   # a degenerate outline: keep the whole box
-            return np.ones((len(x), len(y)), bool)
-        # inside every edge's half-plane (the hull is convex): (e, a, b) cross products at once
-        cross = (edges[:, 0, None, None] * (y[None, None, :] - hull[:, 1, None, None])
-                 - edges[:, 1, None, None] * (x[None, :, None] - hull[:, 0, None, None]))
-        return np.all(turn * cross >= -FRUSTUM_MARGIN_M * np.hypot(edges[:, 0], edges[:, 1])[:, None, None], axis=0)
+        lo = np.floor((corners.min(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int) - 1
+        hi = np.ceil((corners.max(0)[:2] - self.origin[:2]) / self.voxel_m).astype(int) + 1
+        lo, hi = np.clip(lo, 0, self.shape[:2]), np.clip(hi, 0, self.shape[:2])
+        return int(lo[0]), int(hi[0]), int(lo[1]), int(hi[1])
 
     def integrate(self, depth_m: np.ndarray, detections: np.ndarray, K: np.ndarray,
                   T_world_camera: np.ndarray, rgb_outline: np.ndarray | None = None) -> int:
@@ -558,86 +590,25 @@ class TSDFVolume:
         the weighted running average of Curless & Levoy (1996), weights capped at max_weight (2: two new views
         overwrite what a push moved). rgb_outline: the depth pixels on the detections' outline in a separate RGB
         camera's image. Returns the number of voxels observed for the first time."""
-        # 1. the voxels the view sees: flat indices, their signed distance to their pixel's surface, the pixel
-        seen = self._voxels_in_view(depth_m, K, T_world_camera) if np.any(depth_m > 0) else None
-        if seen is None:
+        if not np.any(depth_m > 0):
             return 0
-        if self.observed_count == 0:   # an empty volume takes the first view as it is: no averaging
-            return self._first_view(depth_m, detections, K, T_world_camera, seen, rgb_outline)
-        flat, sdf, pixel = seen
-        tsdf, weight, det = (a.reshape(-1) for a in (self.tsdf, self.weight, self.detections))
-        w_old = weight[flat]
-        newly = int(np.count_nonzero(w_old == 0))
-        self.observed_count += newly
-        # 2. most are free space already known as free at full weight, where averaging 1 into 1 changes
-        #    nothing: they are dropped before the expensive updates
-        same = (sdf >= self.trunc_m) & (w_old == self.max_weight)
-        same[same] = tsdf[flat[same]] == 1.0
-        if same.any():
-            keep = ~same
-            flat, sdf, pixel, w_old = flat[keep], sdf[keep], pixel[keep], w_old[keep]
-        # 3. the weighted average, each view weighing 1; detections as a truncated unsigned distance (the
-        #    pixel's score fading to 0 at trunc_m), averaged alike and carved out of free space
-        w_sum = w_old + 1.0
-        tsdf_obs, det_obs = self._view_values(sdf, pixel, detections)
-        tsdf[flat] = (tsdf[flat] * w_old + tsdf_obs) / w_sum
-        det_new = (det[flat] * w_old + det_obs) / w_sum
-        det_new[sdf >= self.trunc_m] = 0.0
-        det[flat] = det_new
-        weight[flat] = np.minimum(w_sum, self.max_weight)
-        # 4. the target surface seen, for the searchers' stop rule
-        self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_new, rgb_outline)
-        return newly
-
-    def _view_values(self, sdf, pixel, detections) -> tuple[np.ndarray, np.ndarray]:
-        """What one view says of its voxels: the TSDF, sdf / trunc_m capped at 1, and the detection channel, the
-        pixel's score fading to 0 at trunc_m from the surface (a truncated unsigned distance)."""
-        return (np.minimum(1.0, sdf * (1.0 / self.trunc_m)),
-                detections.reshape(-1)[pixel] * np.maximum(0.0, 1.0 - np.abs(sdf) / self.trunc_m))
-
-    def _first_view(self, depth_m, detections, K, T_world_camera, seen, rgb_outline) -> int:
-        """integrate() into an empty volume: each voxel seen takes the view's values at weight 1, what the
-        average gives, without reading the volume."""
-        flat, sdf, pixel = seen
-        tsdf_obs, det_obs = self._view_values(sdf, pixel, detections)
-        det_obs[sdf >= self.trunc_m] = 0.0   # carved out of free space
-        self.tsdf.reshape(-1)[flat] = tsdf_obs
-        self.detections.reshape(-1)[flat] = det_obs
-        self.weight.reshape(-1)[flat] = 1.0
-        self.observed_count = len(flat)
-        self._mark_target_surface(depth_m, detections, K, T_world_camera, flat, det_obs, rgb_outline)
-        return len(flat)
-
-    def _voxels_in_view(self, depth_m, K, T_world_camera):
-        """(flat index, signed distance, pixel) of each voxel that projects onto a depth return and lies in
-        front of it or up to trunc_m behind; None when the frustum misses the volume. Pixel coordinates are
-        (fx x + cx z) / z and (fy y + cy z) / z, and x, y, z are linear in the voxel centre: each numerator is
-        a sum of three 1-D terms broadcast over the box's columns in the frustum, not a 3 x 3 product per voxel."""
-        H, W = depth_m.shape
+        far_m = float(depth_m.max()) + self.trunc_m   # no voxel farther can be seen
+        columns = self.frustum_columns(depth_m.shape, far_m, K, T_world_camera)
+        if columns[0] >= columns[1] or columns[2] >= columns[3]:
+            return 0
+        # A voxel centre's pixel is (fx x + cx z) / z, (fy y + cy z) / z with x, y, z linear in the centre: each
+        # row of world_to_pixel times the centre's offset from the camera is a sum of three per-axis terms.
         world_to_pixel = (K @ T_world_camera[:3, :3].T).astype(np.float32)   # (3, 3) rows give u z, v z, z
         t = T_world_camera[:3, 3].astype(np.float32)
-        flats, sdfs, pixels = [], [], []
-        for box, corners_xy in self.frustum_boxes(depth_m, K, T_world_camera):
-            offsets = [ax[b] - t[i] for i, (ax, b) in enumerate(zip(self.axes, box))]   # 1-D, from the camera
-            i, j = np.nonzero(self.frustum_columns(box, corners_xy))   # (m,) the columns in the frustum
-
-            def along_box(row):
-                return ((row[0] * offsets[0])[i] + (row[1] * offsets[1])[j])[:, None] + (row[2] * offsets[2])[None, :]
-
-            z = along_box(world_to_pixel[2])     # (m, c) depth of each voxel along the optical axis
-            u = along_box(world_to_pixel[0]) / z
-            v = along_box(world_to_pixel[1]) / z
-            valid = (z > MIN_PROJECTION_Z_M) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-            pixel = v[valid].astype(np.int32) * W + u[valid].astype(np.int32)
-            depth = depth_m.reshape(-1)[pixel]
-            sdf = depth - z[valid]
-            keep = (depth > 0) & (sdf >= -self.trunc_m)   # behind the surface by more than trunc: unseen
-            flats.append(self.flat_index[box][i, j][valid][keep])
-            sdfs.append(sdf[keep])
-            pixels.append(pixel[keep])
-        if not flats:
-            return None
-        return np.concatenate(flats), np.concatenate(sdfs), np.concatenate(pixels)
+        terms = [world_to_pixel[:, [axis]] * (self.axes[axis] - t[axis]) for axis in range(3)]   # 3 x (3, n)
+        newly, updated = fuse_view(
+            self.tsdf, self.weight, self.detections, np.ascontiguousarray(depth_m),
+            np.ascontiguousarray(detections), *terms, columns, far_m, self.trunc_m,
+            1.0 / self.trunc_m, np.float32(self.max_weight), self.updated_voxels, self.updated_detections)
+        self.observed_count += newly
+        self._mark_target_surface(depth_m, detections, K, T_world_camera, self.updated_voxels[:updated],
+                                  self.updated_detections[:updated], rgb_outline)
+        return newly
 
     def _mark_target_surface(self, depth_m, detections, K, T_world_camera, flat, det_new, rgb_outline) -> None:
         """Keep `target_area`: per cell, the most target surface (m^2) one view saw in it, from the detected
@@ -1344,6 +1315,9 @@ class PhysicsClient(BulletClient):
         self.resetSimulation()
         self._shapes.clear()
 
+    def shape_count(self) -> int:
+        return len(self._shapes)
+
     def shapes(self, key, make) -> tuple:
         """(collision, visual) shape ids for `key`, made by make() once per world and shared by its bodies."""
         if key not in self._shapes:
@@ -1766,6 +1740,9 @@ def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) 
                        rest, model)
 
 
+GRIPPER_PARKED_M = (0.0, 0.0, 1.0)   # the gripper waits here, above the walls, while a scene settles
+
+
 def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
     """Floor, four walls and the gripper on its constraint; returns the (gripper, constraint) ids. The
     gripper's only visual is a transparent speck (TinyRenderer would draw its collision shapes into the
@@ -1786,9 +1763,9 @@ def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
     col = sim.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, collisionFramePositions=centres)
     speck = sim.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=GRIPPER_BOXES[0][1],
                                  rgbaColor=(0, 0, 0, 0))
-    gripper = sim.createMultiBody(cfg.gripper_mass_kg, col, speck, [0, 0, 1])
+    gripper = sim.createMultiBody(cfg.gripper_mass_kg, col, speck, GRIPPER_PARKED_M)
     sim.changeDynamics(gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
-    constraint = sim.createConstraint(gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], [0, 0, 1])
+    constraint = sim.createConstraint(gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], GRIPPER_PARKED_M)
     return gripper, constraint
 
 
@@ -1852,22 +1829,29 @@ def pile_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> li
     return poses
 
 
-SETTLE_CHECK_EVERY = 8   # physics steps between checks that everything is at rest (a check costs a few)
+MAX_KEPT_SHAPES = 400   # a world kept across resets starts anew past this many shapes (variable primitives
+                        # make new ones every scene; Bullet frees shapes only with the world)
+SETTLE_CHECK_S = 1 / 30   # simulated time between checks that everything is at rest (a check costs a few steps)
 
 
-def settle(sim, objects: list, cfg: Settings, max_steps: int) -> bool:
-    """Step physics until every object is slower than settle_speed, then put them all to sleep; False if
-    still moving. pybullet only lets bodies sleep after 2 s at rest; sending them to sleep at once keeps
-    later physics steps cheap (a resting pile then costs nothing until something touches it)."""
-    for step in range(max_steps):
-        sim.stepSimulation()
-        if step % SETTLE_CHECK_EVERY == SETTLE_CHECK_EVERY - 1:
-            speeds = [sum(c * c for c in sim.getBaseVelocity(o.body)[0]) for o in objects]
-            if max(speeds, default=0.0) < cfg.settle_speed ** 2:
-                for o in objects:
-                    sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
-                return True
-    return False
+def settle(sim, objects: list, cfg: Settings, max_s: float) -> bool:
+    """Step physics at settle_hz for at most max_s until every object is slower than settle_speed, then put
+    them all to sleep; False if still moving. pybullet only lets bodies sleep after 2 s at rest; sending them
+    to sleep at once keeps later physics steps cheap (a resting pile then costs nothing until touched)."""
+    every = max(1, round(SETTLE_CHECK_S * cfg.settle_hz))
+    sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.settle_hz)
+    try:
+        for step in range(round(max_s * cfg.settle_hz)):
+            sim.stepSimulation()
+            if step % every == every - 1:
+                speeds = [sum(c * c for c in sim.getBaseVelocity(o.body)[0]) for o in objects]
+                if max(speeds, default=0.0) < cfg.settle_speed ** 2:
+                    for o in objects:
+                        sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
+                    return True
+        return False
+    finally:
+        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz)
 
 
 def target_surface(target: SceneObject, cfg: Settings, rng: np.random.Generator):
@@ -1903,9 +1887,7 @@ def build_scene(sim, cfg: Settings, scene: str, rng: np.random.Generator) -> Sce
     poses = (pile_positions if heaped else scatter_positions)(objects, cfg, rng)
     for obj, (xyz, yaw) in zip(objects, poses):
         sim.resetBasePositionAndOrientation(obj.body, xyz, quat_of(rotation(yaw, "z") @ obj.rest))
-    sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.new_scene_hz)
-    settle(sim, objects, cfg, cfg.settle_pile_substeps if heaped else cfg.settle_scatter_substeps)
-    sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz)
+    settle(sim, objects, cfg, cfg.settle_pile_s if heaped else cfg.settle_scatter_s)
     if target_present:
         points, normals, area = target_surface(objects[0], cfg, rng)
     else:
@@ -1921,7 +1903,7 @@ def build_scene(sim, cfg: Settings, scene: str, rng: np.random.Generator) -> Sce
 # ================================================================================================
 
 SWEEP_MARGIN_M = 0.005  # the box swept by one move, grown by this before asking what it touches
-REACH_CHECK_EVERY = 4   # physics steps between checks of the gripper's progress towards an action's pose
+REACH_CHECK_S = 1 / 60   # simulated time between checks of the gripper's progress towards an action's pose
 OUTSIDE_VIEW = (320, 240)   # width, height of render() and of each demo panel
 
 
@@ -1963,6 +1945,7 @@ class ObjectFindingEnv(gym.Env):
             rig_cfg = dataclasses.replace(self.cfg, **RIG_SENSING)
             self.worlds.append((rig_cfg, Searcher(rig_cfg)))
         self.sim = PhysicsClient()
+        self.workspace, self.objects = None, []   # (gripper, constraint) of the world, kept across resets
         self.view: WristView | None = None
 
     # --- one step: the data flow of Fig. 2 ------------------------------------------------------
@@ -2099,13 +2082,27 @@ class ObjectFindingEnv(gym.Env):
         return self.searcher.state(self.gripper_pose()), self._info()
 
     def _build_scene(self, rng) -> None:
-        """A fresh world: physics settings, the workspace with the gripper, then a drawn scene."""
+        """The workspace (floor, walls, the gripper on its constraint) and the shapes made so far, kept from the
+        last episode, then a drawn scene. Bullet sorts its overlapping pairs (deterministicOverlappingPairs),
+        so the bodies a world held before do not change its physics: the scene is a fresh world's."""
         cfg, sim = self.cfg, self.sim
-        sim.new_world()
-        sim.setGravity(0, 0, -9.81)
-        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, numSolverIterations=cfg.solver_iterations)
-        self.gripper, self.constraint = build_workspace(sim, cfg)
-        scene = build_scene(sim, cfg, self.scene, rng)
+        try:
+            if self.workspace is None or sim.shape_count() > MAX_KEPT_SHAPES:
+                sim.new_world()
+                sim.setGravity(0, 0, -9.81)
+                sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, erp=cfg.gripper_erp,
+                                              numSolverIterations=cfg.solver_iterations, deterministicOverlappingPairs=1)
+                self.workspace = build_workspace(sim, cfg)
+            else:
+                for o in reversed(self.objects):   # the last made first: new bodies get the ids a fresh world gives
+                    sim.removeBody(o.body)
+            self.objects = []
+            self.gripper, self.constraint = self.workspace
+            self._teleport(np.array(GRIPPER_PARKED_M), np.eye(3))   # out of the new scene's way, as when made
+            scene = build_scene(sim, cfg, self.scene, rng)
+        except BaseException:
+            self.workspace = None   # a scene left half built: the next reset starts a new world
+            raise
         self.objects, self.target_present, self.heaped = scene.objects, scene.target_present, scene.heaped
         self.target_points, self.target_normals = scene.target_points, scene.target_normals
         self.target_area_m2 = scene.target_area_m2
@@ -2159,9 +2156,10 @@ class ObjectFindingEnv(gym.Env):
         q_goal = quat_of(R_goal)
         sim.changeConstraint(self.constraint, goal.tolist(), q_goal, maxForce=cfg.gripper_force_n)
         last = T_world_tool[:3, 3]
-        for substep in range(1, cfg.max_substeps + 1):
+        every = max(1, round(REACH_CHECK_S * cfg.physics_hz))
+        for substep in range(1, round(cfg.move_limit_s * cfg.physics_hz) + 1):
             sim.stepSimulation()
-            if substep % REACH_CHECK_EVERY == 0:
+            if substep % every == 0:
                 pos, orn = sim.getBasePositionAndOrientation(self.gripper)
                 pos = np.array(pos)
                 angle = 2 * np.arccos(min(1.0, abs(float(np.dot(orn, q_goal)))))
@@ -2170,7 +2168,7 @@ class ObjectFindingEnv(gym.Env):
                 if reached or stalled:
                     break
                 last = pos
-        self.disturbed = not settle(sim, self.objects, cfg, cfg.settle_substeps)
+        self.disturbed = not settle(sim, self.objects, cfg, cfg.settle_s)
 
     # --- pictures ---------------------------------------------------------------------------------
 
@@ -2986,7 +2984,7 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
                   "decision_ms")   # the columns of an evaluation CSV, one row per episode ...
 ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
-WORLD_REVISION = 3   # of the simulated world and the agents: raised by every change that alters the episodes
+WORLD_REVISION = 5   # of the simulated world and the agents: raised by every change that alters the episodes
                      # of a seed (2: mesh models as hulls, placed resting; scenes settle at 120 Hz; one 20 % rule)
 
 
