@@ -96,13 +96,19 @@ def above(low, high=np.inf):
     return lambda v: low < v <= high, f"above {low}" if high == np.inf else f"in ({low}, {high}]"
 
 
+def field_kind(field: dataclasses.Field) -> str:
+    """A settings field's type by name ("int", "float", "bool", "tuple", ...), as check_fields and the command
+    line's --world parse it: with `from __future__ import annotations` a field's type is a string."""
+    return field.type if isinstance(field.type, str) else field.type.__name__
+
+
 def check_fields(settings) -> None:
     """A settings dataclass checked where it is made, so a new field is one line: its type (a whole number,
     a truth value, numbers in a tuple), every number finite, and the field's range in `limits` if any."""
     for field in dataclasses.fields(settings):
         value = getattr(settings, field.name)
         ok, meaning = settings.limits.get(field.name, settings.default_limit)
-        kind = field.type if isinstance(field.type, str) else field.type.__name__
+        kind = field_kind(field)
         values = value if kind == "tuple" and isinstance(value, tuple) else (value,)
         number = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
         if kind == "bool" and not isinstance(value, bool):
@@ -3851,7 +3857,7 @@ def world_setting_arg(text: str) -> tuple:
     """NAME=VALUE for one Settings field of the training world, e.g. tof_noise_ratio=0.01 or
     sensor_error_scale=0,2 (a tuple as comma-separated numbers); its range is checked with the task's."""
     name, _, value = text.partition("=")
-    kinds = {f.name: f.type if isinstance(f.type, str) else f.type.__name__ for f in dataclasses.fields(Settings)}
+    kinds = {f.name: field_kind(f) for f in dataclasses.fields(Settings)}
     if name not in kinds:
         raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE with NAME a Settings field")
     try:
