@@ -39,6 +39,7 @@ import functools
 import gc
 import hashlib
 import importlib.metadata
+import itertools
 import json
 import multiprocessing
 import os
@@ -1321,9 +1322,6 @@ class PhysicsClient(BulletClient):
         self.resetSimulation()
         self._shapes.clear()
 
-    def shape_count(self) -> int:
-        return len(self._shapes)
-
     def shapes(self, key, make) -> tuple:
         """(collision, visual) shape ids for `key`, made by make() once per world and shared by its bodies."""
         if key not in self._shapes:
@@ -1687,17 +1685,20 @@ RANDOM_SHAPE_SCALE = 0.5      # about 5-6 cm across
 
 @dataclass
 class SceneObject:
-    body: int
+    shapes: tuple          # (collision, visual) pybullet shape ids, shared by the objects of one kind and size
+    rgba: tuple
     vertices: np.ndarray   # (V, 3) mesh in the body's frame (pybullet's base = centre-of-mass frame)
     faces: np.ndarray      # (F, 3)
     radius_m: float        # of the footprint, for placing objects apart
     half_height_m: float   # lowest vertex below the body origin when resting
     rest: np.ndarray       # 3 x 3 rotation in which it rests (before a yaw about the vertical)
     model: tuple | None = None   # (URDF path, scale) of a mesh model; None for a convex primitive
+    body: int = -1               # its pybullet body, once add_bodies has made it
 
 
 def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) -> SceneObject:
-    """One object of a scene kind (primitives about object_size_m across) created at the origin, to be placed."""
+    """One object of a scene kind (primitives about object_size_m across): its shapes and mesh; add_bodies
+    then makes its body."""
     kind = "cube" if scene == "cubes" else None
     if scene in ("fixed-primitives", "variable-primitives"):
         kind = ("cube", "cuboid", "cylinder", "prism")[rng.integers(4)]
@@ -1734,16 +1735,27 @@ def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) 
             sim.createVisualShape(pb.GEOM_MESH, vertices=mesh.render_vertices.tolist(),
                                   indices=mesh.render_faces.reshape(-1).tolist())))
         v, f, rest = mesh.vertices, mesh.faces, mesh.rests[rng.integers(len(mesh.rests))]
-    body = sim.createMultiBody(cfg.object_mass_kg, *shapes, useMaximalCoordinates=True)
-    sim.changeVisualShape(body, -1, rgbaColor=rgba)
-    # Objects may sleep: a resting pile then costs nothing per physics step until something touches it.
-    sim.changeDynamics(body, -1, lateralFriction=cfg.object_friction,
-                       activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING)
-    if model is not None:
-        sim.changeDynamics(body, -1, rollingFriction=cfg.model_rolling_friction_m)
     resting = v @ rest.T
-    return SceneObject(body, v, f, float(np.linalg.norm(resting[:, :2], axis=1).max()), float(-resting[:, 2].min()),
-                       rest, model)
+    return SceneObject(shapes, rgba, v, f, float(np.linalg.norm(resting[:, :2], axis=1).max()),
+                       float(-resting[:, 2].min()), rest, model)
+
+
+def add_bodies(sim, objects: list, cfg: Settings) -> None:
+    """Each object's body at the origin, to be placed, made in the objects' order (Bullet's body ids order its
+    contacts). Objects in a row that share shapes are made in one batched call: pybullet's client fetches a
+    new body's info after each call (about 70 us), and after a batch only its last body's, which nothing reads."""
+    for shapes, run in itertools.groupby(objects, key=lambda o: o.shapes):
+        run = list(run)
+        bodies = sim.createMultiBody(cfg.object_mass_kg, *shapes, useMaximalCoordinates=True,
+                                     batchPositions=[[0.0, 0.0, 0.0]] * len(run))
+        for obj, body in zip(run, bodies):
+            obj.body = body
+            sim.changeVisualShape(body, -1, rgbaColor=obj.rgba)
+            # Objects may sleep: a resting pile then costs nothing per physics step until something touches it.
+            sim.changeDynamics(body, -1, lateralFriction=cfg.object_friction,
+                               activationState=pb.ACTIVATION_STATE_ENABLE_SLEEPING)
+            if obj.model is not None:
+                sim.changeDynamics(body, -1, rollingFriction=cfg.model_rolling_friction_m)
 
 
 GRIPPER_PARKED_M = (0.0, 0.0, 1.0)   # the gripper waits here, above the walls, while a scene settles
@@ -1753,18 +1765,18 @@ def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
     """Floor, four walls and the gripper on its constraint; returns the (gripper, constraint) ids. The
     gripper's only visual is a transparent speck (TinyRenderer would draw its collision shapes into the
     wrist view); the outside view paints it in."""
-    half, thick = cfg.workspace_m / 2, cfg.wall_thickness_m
-
-    def static_box(half_extents, pos, rgba):
-        return sim.createMultiBody(0, sim.createCollisionShape(pb.GEOM_BOX, halfExtents=half_extents),
-                                  sim.createVisualShape(pb.GEOM_BOX, halfExtents=half_extents, rgbaColor=rgba),
-                                  pos)
-    static_box([half + 2 * thick] * 2 + [thick], [0, 0, -thick], FLOOR_RGBA)
-    wall_z = cfg.wall_height_m / 2
-    for sx in (-1, 1):
-        static_box([thick, half + 2 * thick, wall_z], [sx * (half + thick), 0, wall_z], WALL_RGBA)
-    for sy in (-1, 1):
-        static_box([half, thick, wall_z], [0, sy * (half + thick), wall_z], WALL_RGBA)
+    half, thick, wall_z = cfg.workspace_m / 2, cfg.wall_thickness_m, cfg.wall_height_m / 2
+    boxes = ([([half + 2 * thick] * 2 + [thick], [0, 0, -thick])]   # (half extents, centre): the floor, then walls
+             + [([thick, half + 2 * thick, wall_z], [sx * (half + thick), 0, wall_z]) for sx in (-1, 1)]
+             + [([half, thick, wall_z], [0, sy * (half + thick), wall_z]) for sy in (-1, 1)])
+    halves, centres = [b[0] for b in boxes], [b[1] for b in boxes]
+    # One static body of five boxes, not five bodies: pybullet's client fetches each new body's info (~0.1 ms).
+    room = sim.createMultiBody(0, sim.createCollisionShapeArray([pb.GEOM_BOX] * 5, halfExtents=halves,
+                                                                collisionFramePositions=centres),
+                               sim.createVisualShapeArray([pb.GEOM_BOX] * 5, halfExtents=halves,
+                                                          visualFramePositions=centres))
+    for i in range(len(boxes)):
+        sim.changeVisualShape(room, -1, shapeIndex=i, rgbaColor=FLOOR_RGBA if i == 0 else WALL_RGBA)
     halves, centres = [b[0] for b in GRIPPER_BOXES], [b[1] for b in GRIPPER_BOXES]
     col = sim.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, collisionFramePositions=centres)
     speck = sim.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=GRIPPER_BOXES[0][1],
@@ -1772,6 +1784,7 @@ def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
     gripper = sim.createMultiBody(cfg.gripper_mass_kg, col, speck, GRIPPER_PARKED_M)
     sim.changeDynamics(gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
     constraint = sim.createConstraint(gripper, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], GRIPPER_PARKED_M)
+    sim.changeConstraint(constraint, maxForce=cfg.gripper_force_n)
     return gripper, constraint
 
 
@@ -1793,13 +1806,12 @@ def scatter_positions(objects: list, cfg: Settings, rng: np.random.Generator) ->
     for n, obj in enumerate(objects):
         r = obj.radius_m
         clearance = r + placed_r[:n] + cfg.scatter_gap_m   # (n,) centre distance each placed object needs
-        for _ in range(cfg.scatter_tries):
-            xy = rng.uniform(-half + r, half - r, 2)
-            if np.all(np.hypot(*(placed_xy[:n] - xy).T) > clearance):
-                z = obj.half_height_m + cfg.drop_gap_m
-                break
+        tries = rng.uniform(-half + r, half - r, (cfg.scatter_tries, 2))
+        free = np.all(np.linalg.norm(tries[:, None] - placed_xy[:n], axis=2) > clearance, axis=1)
+        if free.any():
+            xy, z = tries[free.argmax()], obj.half_height_m + cfg.drop_gap_m
         else:
-            z = obj.half_height_m + cfg.no_room_drop_m
+            xy, z = tries[-1], obj.half_height_m + cfg.no_room_drop_m
         placed_xy[n], placed_r[n] = xy, r
         poses.append((np.r_[xy, z], rng.uniform(-np.pi, np.pi)))
     return poses
@@ -1835,8 +1847,6 @@ def pile_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> li
     return poses
 
 
-MAX_KEPT_SHAPES = 400   # a world kept across resets starts anew past this many shapes (variable primitives
-                        # make new ones every scene; Bullet frees shapes only with the world)
 SETTLE_CHECK_S = 1 / 30   # simulated time between checks that everything is at rest (a check costs a few steps)
 
 
@@ -1890,6 +1900,7 @@ def build_scene(sim, cfg: Settings, scene: str, rng: np.random.Generator) -> Sce
     for i in range(count):
         rgba = TARGET_RGBA if i == 0 and target_present else OTHER_RGBA[rng.integers(len(OTHER_RGBA))]
         objects.append(make_object(sim, scene, cfg, rng, rgba))
+    add_bodies(sim, objects, cfg)
     poses = (pile_positions if heaped else scatter_positions)(objects, cfg, rng)
     for obj, (xyz, yaw) in zip(objects, poses):
         sim.resetBasePositionAndOrientation(obj.body, xyz, quat_of(rotation(yaw, "z") @ obj.rest))
@@ -1951,7 +1962,7 @@ class ObjectFindingEnv(gym.Env):
             rig_cfg = dataclasses.replace(self.cfg, **RIG_SENSING)
             self.worlds.append((rig_cfg, Searcher(rig_cfg)))
         self.sim = PhysicsClient()
-        self.workspace, self.objects = None, []   # (gripper, constraint) of the world, kept across resets
+        self.objects = []
         self.view: WristView | None = None
 
     # --- one step: the data flow of Fig. 2 ------------------------------------------------------
@@ -2088,27 +2099,17 @@ class ObjectFindingEnv(gym.Env):
         return self.searcher.state(self.gripper_pose()), self._info()
 
     def _build_scene(self, rng) -> None:
-        """The workspace (floor, walls, the gripper on its constraint) and the shapes made so far, kept from the
-        last episode, then a drawn scene. Bullet sorts its overlapping pairs (deterministicOverlappingPairs),
-        so the bodies a world held before do not change its physics: the scene is a fresh world's."""
+        """A new world: the workspace (floor, walls, the gripper on its constraint), then a drawn scene. Every
+        scene gets a world of its own: Bullet's broadphase keeps state across bodies removed and added (its
+        pair cache, a cursor of the pairs it checks each step), and a world kept from the last episode would
+        order contacts differently, so an episode would depend on the episodes played before it."""
         cfg, sim = self.cfg, self.sim
-        try:
-            if self.workspace is None or sim.shape_count() > MAX_KEPT_SHAPES:
-                sim.new_world()
-                sim.setGravity(0, 0, -9.81)
-                sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, erp=cfg.gripper_erp,
-                                              numSolverIterations=cfg.solver_iterations, deterministicOverlappingPairs=1)
-                self.workspace = build_workspace(sim, cfg)
-            else:
-                for o in reversed(self.objects):   # the last made first: new bodies get the ids a fresh world gives
-                    sim.removeBody(o.body)
-            self.objects = []
-            self.gripper, self.constraint = self.workspace
-            self._teleport(np.array(GRIPPER_PARKED_M), np.eye(3))   # out of the new scene's way, as when made
-            scene = build_scene(sim, cfg, self.scene, rng)
-        except BaseException:
-            self.workspace = None   # a scene left half built: the next reset starts a new world
-            raise
+        sim.new_world()
+        sim.setGravity(0, 0, -9.81)
+        sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, erp=cfg.gripper_erp,
+                                      numSolverIterations=cfg.solver_iterations, deterministicOverlappingPairs=1)
+        self.gripper, self.constraint = build_workspace(sim, cfg)
+        scene = build_scene(sim, cfg, self.scene, rng)
         self.objects, self.target_present, self.heaped = scene.objects, scene.target_present, scene.heaped
         self.target_points, self.target_normals = scene.target_points, scene.target_normals
         self.target_area_m2 = scene.target_area_m2
@@ -2990,7 +2991,7 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
                   "decision_ms")   # the columns of an evaluation CSV, one row per episode ...
 ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
-WORLD_REVISION = 5   # of the simulated world and the agents: raised by every change that alters the episodes
+WORLD_REVISION = 6   # of the simulated world and the agents: raised by every change that alters the episodes
                      # of a seed (2: mesh models as hulls, placed resting; scenes settle at 120 Hz; one 20 % rule)
 
 

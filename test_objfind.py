@@ -362,25 +362,22 @@ def episode_digest(env, seed: int, steps: int = 15) -> str:
     return digest.hexdigest() + of.hashlib.sha256(np.array([p + q for p, q in poses]).tobytes()).hexdigest()
 
 
-@pytest.mark.parametrize("task, scene", [("ap", "cubes"), ("ip", "cubes"), ("ip", "variable-primitives"),
-                                         ("ip", "object-models")])
-def test_a_reset_keeps_the_workspace_and_gives_a_fresh_worlds_episode(task, scene):
-    """The second and later resets keep the floor, walls, gripper and shapes, and still give the episode a
-    fresh env gives with that seed: pushes into piles included, where Bullet's pair order would show."""
+@pytest.mark.parametrize("task, scene, before, seed", [("ap", "variable-primitives", 2, 0), ("ap", "variable-primitives", 3, 1),
+                                                       ("ip", "cubes", 3, 0), ("ip", "object-models", 1, 2)])
+def test_an_episode_does_not_depend_on_the_episode_played_before_it(task, scene, before, seed):
+    """An env that played another episode first gives the episode a fresh env gives with that seed, pushes
+    included. A Bullet world kept across resets fails the first three: its broadphase state orders contacts."""
     env = of.ObjectFindingEnv(task, scene)
     try:
-        env.reset(seed=100)
-        workspace, floor_pose = env.workspace, env.sim.getBasePositionAndOrientation(0)
-        kept = [episode_digest(env, seed) for seed in range(3)]
-        assert env.workspace == workspace and env.sim.getBasePositionAndOrientation(0) == floor_pose
+        episode_digest(env, before)
+        played = episode_digest(env, seed)
     finally:
         env.close()
-    for seed, digest in zip(range(3), kept):
-        fresh = of.ObjectFindingEnv(task, scene)
-        try:
-            assert episode_digest(fresh, seed) == digest
-        finally:
-            fresh.close()
+    fresh = of.ObjectFindingEnv(task, scene)
+    try:
+        assert episode_digest(fresh, seed) == played
+    finally:
+        fresh.close()
 
 
 def test_same_seed_same_scene_and_state_different_seed_different(ap_env):
@@ -1423,6 +1420,7 @@ def detection_sum_seen_the_same_way(side_m: float, target_size_known: bool) -> f
         env.sim.removeBody(o.body)
     s = dataclasses.replace(env.cfg, object_size_m=side_m)
     target = of.make_object(env.sim, "cubes", s, np.random.default_rng(0), of.TARGET_RGBA)
+    of.add_bodies(env.sim, [target], s)
     env.sim.resetBasePositionAndOrientation(target.body, [0, 0, side_m / 2], [0, 0, 0, 1])
     env.objects, env.target_present = [target], True
     env.target_area_m2 = of.mesh_area(target.vertices, target.faces)
@@ -1524,7 +1522,7 @@ def no_physics(monkeypatch):
     monkeypatch.setattr(of, "PhysicsClient", NoPhysics())
 
 
-@pytest.mark.parametrize("agent_name, task, seed", [("gnbv", "ap", 7), ("a3de", "ap", 7002), ("ges", "ip", 2)])
+@pytest.mark.parametrize("agent_name, task, seed", [("gnbv", "ap", 7), ("a3de", "ap", 7003), ("ges", "ip", 2)])
 def test_a_searcher_fed_a_recorded_episode_gives_its_states_and_its_agent_acts_the_same(agent_name, task, seed,
                                                                                        request):
     cfg, told, views, states, actions = recorded_episode(agent_name, task, seed)
@@ -2243,10 +2241,10 @@ def scene_fingerprint(task: str, scene: str, seeds) -> str:
 
 
 @pytest.mark.parametrize("task, scene, fingerprint", [
-    ("ap", "cubes", "b46831ab0b4d0173"), ("ip", "cubes", "ab9ee7e8fd8c8487"),
-    ("ip", "variable-primitives", "858bc5f3beebf7eb"), ("ap-large", "cubes", "92a0806709024983")])
+    ("ap", "cubes", "80db80ac804076b8"), ("ip", "cubes", "d80256a05f7b2a1f"),
+    ("ip", "variable-primitives", "56206f65369384be"), ("ap-large", "cubes", "9f9a9fdc9dc609e6")])
 def test_scene_generation_for_small_workspaces_leaves_the_simulation_presets_exactly(task, scene, fingerprint):
-    """Pile margins and spacing scale with the workspace; at 0.6 m and 1.2 m the scenes are those of world 5."""
+    """Pile margins and spacing scale with the workspace; at 0.6 m and 1.2 m the scenes are those of world 6."""
     assert scene_fingerprint(task, scene, range(3)) == fingerprint
 
 
@@ -2273,10 +2271,10 @@ def test_the_real_presets_build_table_one_scenes_inside_the_small_floor(task):
 def test_one_scene_fused_at_two_voxel_sizes_gives_the_same_share_and_nearly_the_same_state():
     """The real presets' 0.33 m at 100 voxels has 3.3 mm voxels, the policies were trained at 6 mm: the state's
     detection sum and the perceived share are counted in cells of state_voxel_m, so the voxel size hardly
-    matters. Tolerances: share 0.03 absolute, bins 0.05, the two sums 10 % (measured: 0.011, 0.024, 5 %)."""
+    matters. Tolerances: share 0.03 absolute, bins 0.05, the two sums 10 % (measured: 0.006, 0.005, 1 %)."""
     env = of.ObjectFindingEnv("ap", "cubes")
     checked = 0
-    for seed in (1, 3, 4, 7):
+    for seed in (4, 7, 8, 14):
         env.reset(seed=seed)
         views, rng = [(env.view, env.gripper_pose())], np.random.default_rng(seed)
         for _ in range(4):
