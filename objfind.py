@@ -1742,8 +1742,9 @@ def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) 
 
 def add_bodies(sim, objects: list, cfg: Settings) -> None:
     """Each object's body at the origin, to be placed, made in the objects' order (Bullet's body ids order its
-    contacts). Objects in a row that share shapes are made in one batched call: pybullet's client fetches a
-    new body's info after each call (about 70 us), and after a batch only its last body's, which nothing reads."""
+    contacts). Objects in a row that share shapes are made in one batched call: pybullet's client fetches a new
+    body's info after each call (about 0.1 ms), after a batch only the last body's (so getNumBodies counts
+    short; nothing here reads it)."""
     for shapes, run in itertools.groupby(objects, key=lambda o: o.shapes):
         run = list(run)
         bodies = sim.createMultiBody(cfg.object_mass_kg, *shapes, useMaximalCoordinates=True,
