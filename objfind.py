@@ -1772,9 +1772,9 @@ def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
              + [([half, thick, wall_z], [0, sy * (half + thick), wall_z]) for sy in (-1, 1)])
     halves, centres = [b[0] for b in boxes], [b[1] for b in boxes]
     # One static body of five boxes, not five bodies: pybullet's client fetches each new body's info (~0.1 ms).
-    room = sim.createMultiBody(0, sim.createCollisionShapeArray([pb.GEOM_BOX] * 5, halfExtents=halves,
+    room = sim.createMultiBody(0, sim.createCollisionShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=halves,
                                                                 collisionFramePositions=centres),
-                               sim.createVisualShapeArray([pb.GEOM_BOX] * 5, halfExtents=halves,
+                               sim.createVisualShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=halves,
                                                           visualFramePositions=centres))
     for i in range(len(boxes)):
         sim.changeVisualShape(room, -1, shapeIndex=i, rgbaColor=FLOOR_RGBA if i == 0 else WALL_RGBA)
