@@ -1696,45 +1696,56 @@ class SceneObject:
     body: int = -1               # its pybullet body, once add_bodies has made it
 
 
+PRIMITIVE_KINDS = ("cube", "cuboid", "cylinder", "prism")
+
+
+@functools.lru_cache(maxsize=64)
+def primitive(kind: str, h: float) -> tuple:
+    """(vertices, faces, collision shape, visual shape, footprint radius, half height) of a primitive about 2 h
+    across, resting on a face; made once per kind and size (cube scenes reuse one)."""
+    if kind in ("cube", "cuboid"):
+        half = [h, h, h] if kind == "cube" else [1.5 * h, 0.75 * h, 0.75 * h]
+        (v, f), col = box_mesh(half), dict(shapeType=pb.GEOM_BOX, halfExtents=half)
+        vis = dict(col)
+    elif kind == "cylinder":
+        (v, f) = cylinder_mesh(h, 2 * h)
+        col = dict(shapeType=pb.GEOM_CYLINDER, radius=h, height=2 * h)
+        vis = dict(shapeType=pb.GEOM_CYLINDER, radius=h, length=2 * h)
+    else:
+        v, f = prism_mesh(2.2 * h, 2 * h)
+        col = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist())
+        vis = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist(), indices=f.reshape(-1).tolist())
+    v.flags.writeable = f.flags.writeable = False   # shared by every object of this kind and size
+    return v, f, col, vis, float(np.linalg.norm(v[:, :2], axis=1).max()), float(-v[:, 2].min())
+
+
 def make_object(sim, scene: str, cfg: Settings, rng: np.random.Generator, rgba) -> SceneObject:
     """One object of a scene kind (primitives about object_size_m across): its shapes and mesh; add_bodies
     then makes its body."""
     kind = "cube" if scene == "cubes" else None
     if scene in ("fixed-primitives", "variable-primitives"):
-        kind = ("cube", "cuboid", "cylinder", "prism")[rng.integers(4)]
+        kind = PRIMITIVE_KINDS[rng.integers(4)]
     elif scene == "cubes-and-cuboids":
-        kind = ("cube", "cuboid")[rng.integers(2)]
+        kind = PRIMITIVE_KINDS[rng.integers(2)]
     if kind is not None:
         scale = rng.uniform(*cfg.variable_scale) if scene == "variable-primitives" else 1.0
         h = cfg.object_size_m * scale / 2
-        if kind in ("cube", "cuboid"):
-            half = [h, h, h] if kind == "cube" else [1.5 * h, 0.75 * h, 0.75 * h]
-            (v, f), col = box_mesh(half), dict(shapeType=pb.GEOM_BOX, halfExtents=half)
-            vis = dict(col)
-        elif kind == "cylinder":
-            (v, f) = cylinder_mesh(h, 2 * h)
-            col = dict(shapeType=pb.GEOM_CYLINDER, radius=h, height=2 * h)
-            vis = dict(shapeType=pb.GEOM_CYLINDER, radius=h, length=2 * h)
-        else:
-            v, f = prism_mesh(2.2 * h, 2 * h)
-            col = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist())
-            vis = dict(shapeType=pb.GEOM_MESH, vertices=v.tolist(), indices=f.reshape(-1).tolist())
+        v, f, col, vis, radius_m, half_height_m = primitive(kind, h)
         shapes = sim.shapes((kind, h), lambda: (sim.createCollisionShape(**col), sim.createVisualShape(**vis)))
-        rest, model = np.eye(3), None
+        return SceneObject(shapes, rgba, v, f, radius_m, half_height_m, np.eye(3))
+    data = pybullet_data.getDataPath()
+    if scene == "random-shapes":
+        i = RANDOM_SHAPES[rng.integers(len(RANDOM_SHAPES))]
+        model = os.path.join(data, "random_urdfs", f"{i:03d}", f"{i:03d}.urdf"), RANDOM_SHAPE_SCALE
     else:
-        data = pybullet_data.getDataPath()
-        if scene == "random-shapes":
-            i = RANDOM_SHAPES[rng.integers(len(RANDOM_SHAPES))]
-            model = os.path.join(data, "random_urdfs", f"{i:03d}", f"{i:03d}.urdf"), RANDOM_SHAPE_SCALE
-        else:
-            name, scale = OBJECT_MODELS[rng.integers(len(OBJECT_MODELS))]
-            model = os.path.join(data, name), scale
-        mesh = mesh_model(*model)
-        shapes = sim.shapes(model, lambda: (
-            sim.createCollisionShape(pb.GEOM_MESH, vertices=mesh.hull.tolist()),
-            sim.createVisualShape(pb.GEOM_MESH, vertices=mesh.render_vertices.tolist(),
-                                  indices=mesh.render_faces.reshape(-1).tolist())))
-        v, f, rest = mesh.vertices, mesh.faces, mesh.rests[rng.integers(len(mesh.rests))]
+        name, scale = OBJECT_MODELS[rng.integers(len(OBJECT_MODELS))]
+        model = os.path.join(data, name), scale
+    mesh = mesh_model(*model)
+    shapes = sim.shapes(model, lambda: (
+        sim.createCollisionShape(pb.GEOM_MESH, vertices=mesh.hull.tolist()),
+        sim.createVisualShape(pb.GEOM_MESH, vertices=mesh.render_vertices.tolist(),
+                              indices=mesh.render_faces.reshape(-1).tolist())))
+    v, f, rest = mesh.vertices, mesh.faces, mesh.rests[rng.integers(len(mesh.rests))]
     resting = v @ rest.T
     return SceneObject(shapes, rgba, v, f, float(np.linalg.norm(resting[:, :2], axis=1).max()),
                        float(-resting[:, 2].min()), rest, model)
@@ -1765,7 +1776,8 @@ GRIPPER_PARKED_M = (0.0, 0.0, 1.0)   # the gripper waits here, above the walls, 
 def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
     """Floor, four walls and the gripper on its constraint; returns the (gripper, constraint) ids. The
     gripper's only visual is a transparent speck (TinyRenderer would draw its collision shapes into the
-    wrist view); the outside view paints it in."""
+    wrist view), a box: TinyRenderer tessellates a sphere anew in every world (0.3 ms). The outside view
+    paints the gripper in."""
     half, thick, wall_z = cfg.workspace_m / 2, cfg.wall_thickness_m, cfg.wall_height_m / 2
     boxes = ([([half + 2 * thick] * 2 + [thick], [0, 0, -thick])]   # (half extents, centre): the floor, then walls
              + [([thick, half + 2 * thick, wall_z], [sx * (half + thick), 0, wall_z]) for sx in (-1, 1)]
@@ -1780,7 +1792,7 @@ def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
         sim.changeVisualShape(room, -1, shapeIndex=i, rgbaColor=FLOOR_RGBA if i == 0 else WALL_RGBA)
     halves, centres = [b[0] for b in GRIPPER_BOXES], [b[1] for b in GRIPPER_BOXES]
     col = sim.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, collisionFramePositions=centres)
-    speck = sim.createVisualShape(pb.GEOM_SPHERE, radius=1e-4, visualFramePosition=GRIPPER_BOXES[0][1],
+    speck = sim.createVisualShape(pb.GEOM_BOX, halfExtents=[1e-4] * 3, visualFramePosition=GRIPPER_BOXES[0][1],
                                  rgbaColor=(0, 0, 0, 0))
     gripper = sim.createMultiBody(cfg.gripper_mass_kg, col, speck, GRIPPER_PARKED_M)
     sim.changeDynamics(gripper, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
@@ -1802,19 +1814,23 @@ def object_count(cfg: Settings, scene: str, rng: np.random.Generator) -> tuple[i
 def scatter_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> list:
     """(xyz, yaw) resting poses apart from each other, by rejection; an object with no room is
     dropped from above onto whatever lies below."""
-    half = cfg.workspace_m / 2
-    placed_xy, placed_r, poses = np.zeros((len(objects), 2)), np.zeros(len(objects)), []
+    half, radius_m = cfg.workspace_m / 2, np.array([obj.radius_m for obj in objects])
+    # Each object's tries (x, y pairs), then its yaw, drawn at once: rng.uniform's draws, one by one.
+    draws = rng.random((len(objects), 2 * cfg.scatter_tries + 1))
+    low, high = (-half + radius_m)[:, None, None], (half - radius_m)[:, None, None]
+    tries = low + (high - low) * draws[:, :-1].reshape(len(objects), cfg.scatter_tries, 2)
+    yaws = -np.pi + 2 * np.pi * draws[:, -1]
+    placed_xy, poses = np.zeros((len(objects), 2)), []
     for n, obj in enumerate(objects):
-        r = obj.radius_m
-        clearance = r + placed_r[:n] + cfg.scatter_gap_m   # (n,) centre distance each placed object needs
-        tries = rng.uniform(-half + r, half - r, (cfg.scatter_tries, 2))
-        free = np.all(np.linalg.norm(tries[:, None] - placed_xy[:n], axis=2) > clearance, axis=1)
-        if free.any():
-            xy, z = tries[free.argmax()], obj.half_height_m + cfg.drop_gap_m
+        d = tries[n, :, None] - placed_xy[:n]   # (tries, n, 2) from each try to each object placed
+        clearance = radius_m[n] + radius_m[:n] + cfg.scatter_gap_m
+        free = np.flatnonzero(np.all(np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) > clearance, axis=1))
+        if len(free):
+            xy, z = tries[n, free[0]], obj.half_height_m + cfg.drop_gap_m
         else:
-            xy, z = tries[-1], obj.half_height_m + cfg.no_room_drop_m
-        placed_xy[n], placed_r[n] = xy, r
-        poses.append((np.r_[xy, z], rng.uniform(-np.pi, np.pi)))
+            xy, z = tries[n, -1], obj.half_height_m + cfg.no_room_drop_m
+        placed_xy[n] = xy
+        poses.append((np.r_[xy, z], yaws[n]))
     return poses
 
 
