@@ -271,6 +271,16 @@ def test_bins_partition_the_crop():
     assert set(bins[inside]) == set(range(17)) and set(bins[~inside]) == {17}
 
 
+def test_pooling_the_columns_gives_numpys_bincount_sums_bit_for_bit():
+    """The state of world 6 was pooled by np.bincount, which adds in column order: so must pool_columns."""
+    rng = np.random.default_rng(0)
+    maps = (rng.normal(size=(of.MAPS, 5000)) * rng.random((of.MAPS, 5000)) ** 8).astype(np.float32)
+    bins = rng.integers(0, of.BINS + 1, 5000)
+    index = (bins[None, :] + (of.BINS + 1) * np.arange(of.MAPS)[:, None]).reshape(-1)
+    expected = np.bincount(index, weights=maps.reshape(-1), minlength=of.MAPS * (of.BINS + 1))
+    assert np.array_equal(of.pool_columns(maps, bins), expected.reshape(of.MAPS, of.BINS + 1)[:, :of.BINS])
+
+
 # ------------------------------------------------------------------------------------------------
 # simulation
 # ------------------------------------------------------------------------------------------------
