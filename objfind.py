@@ -223,7 +223,7 @@ class Settings:
     # scenes: scattered objects
     scatter_tries: int = 50             # rejection samples for a free spot before dropping from above
     scatter_gap_m: float = 0.005        # clearance between scattered objects' footprints
-    drop_gap_m: float = 0.002           # objects start this far above their resting height
+    drop_gap_m: float = 0.002           # objects dropped into a pile start this far above their spot
     no_room_drop_m: float = 0.1         # an object without a free spot falls from this height
     # scenes: piles (pile_positions)
     pile_margin_ratio: float = 0.2      # pile centres at least this share of the workspace from the walls ...
@@ -1389,6 +1389,30 @@ def render_rgbd(sim, T_world_camera: np.ndarray, camera: Camera) -> tuple[np.nda
     return np.ascontiguousarray(rgb), depth.astype(np.float32)
 
 
+FLOOR_RGBA, WALL_RGBA = (0.78, 0.76, 0.72, 1), (0.55, 0.6, 0.68, 1)
+FLOOR_RGB8 = np.array([186, 181, 171], np.uint8)   # FLOOR_RGBA as TinyRenderer shades a plane facing up, from any view
+
+
+def floor_half_m(cfg: Settings) -> float:
+    """Half the floor's side: the workspace and the walls standing on it."""
+    return cfg.workspace_m / 2 + 2 * cfg.wall_thickness_m
+
+
+def draw_floor(rgb: np.ndarray, depth_m: np.ndarray, T_world_camera: np.ndarray, camera: Camera,
+               half_m: float) -> None:
+    """Draw the floor (z = 0, |x|, |y| <= half_m) into the pixels a render left empty, in place. It has no
+    visual shape: TinyRenderer shades it in one colour, yet rasterising it took half of every wrist view; a
+    ray meeting a plane is one division per pixel."""
+    v, u = np.nonzero(depth_m == 0)
+    K, R, origin = camera.K, T_world_camera[:3, :3], T_world_camera[:3, 3]
+    ray = R @ np.stack([(u + 0.5 - K[0, 2]) / K[0, 0], (v + 0.5 - K[1, 2]) / K[1, 1], np.ones(len(u))])
+    with np.errstate(divide="ignore"):
+        z = -origin[2] / ray[2]   # the depth at which each pixel's ray (world direction per metre) meets z = 0
+    x, y = origin[0] + z * ray[0], origin[1] + z * ray[1]
+    floor = (z > camera.near_m) & (z < camera.far_m) & (np.abs(x) <= half_m) & (np.abs(y) <= half_m)
+    depth_m[v[floor], u[floor]], rgb[v[floor], u[floor]] = z[floor], FLOOR_RGB8
+
+
 def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, cfg: Settings) -> np.ndarray:
     """Sec. III-C: true detections lose an Exp(lambda) sample; a random 2 % of pixels become false
     positives valued Exp(lambda)."""
@@ -1684,7 +1708,6 @@ OTHER_RGBA = (
     (0.10, 0.30, 0.90, 1), (0.15, 0.65, 0.20, 1), (0.90, 0.85, 0.20, 1), (0.55, 0.55, 0.55, 1),
     (0.20, 0.70, 0.80, 1), (0.92, 0.92, 0.92, 1), (0.35, 0.35, 0.40, 1), (0.45, 0.25, 0.75, 1),
 )
-FLOOR_RGBA, WALL_RGBA = (0.78, 0.76, 0.72, 1), (0.55, 0.6, 0.68, 1)
 
 # pybullet_data's household-like meshes with the global scaling that brings each near 5-8 cm
 OBJECT_MODELS = (("duck_vhacd.urdf", 0.6), ("teddy_vhacd.urdf", 0.6), ("objects/mug.urdf", 0.5),
@@ -1788,22 +1811,22 @@ GRIPPER_PARKED_M = (0.0, 0.0, 1.0)   # the gripper waits here, above the walls, 
 
 
 def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
-    """Floor, four walls and the gripper on its constraint; returns the (gripper, constraint) ids. The
-    gripper's only visual is a transparent speck (TinyRenderer would draw its collision shapes into the
-    wrist view), a box: TinyRenderer tessellates a sphere anew in every world (0.3 ms). The outside view
-    paints the gripper in."""
-    half, thick, wall_z = cfg.workspace_m / 2, cfg.wall_thickness_m, cfg.wall_height_m / 2
-    boxes = ([([half + 2 * thick] * 2 + [thick], [0, 0, -thick])]   # (half extents, centre): the floor, then walls
-             + [([thick, half + 2 * thick, wall_z], [sx * (half + thick), 0, wall_z]) for sx in (-1, 1)]
+    """Floor, four walls and the gripper on its constraint; returns the (gripper, constraint) ids. The floor
+    has no visual shape (draw_floor draws it). The gripper's only visual is a transparent speck (TinyRenderer
+    would draw its collision shapes into the wrist view), a box: TinyRenderer tessellates a sphere anew in
+    every world (0.3 ms). The outside view paints the gripper in."""
+    half, thick, wall_z, floor_half = cfg.workspace_m / 2, cfg.wall_thickness_m, cfg.wall_height_m / 2, floor_half_m(cfg)
+    boxes = ([([floor_half] * 2 + [thick], [0, 0, -thick])]   # (half extents, centre): the floor, then walls
+             + [([thick, floor_half, wall_z], [sx * (half + thick), 0, wall_z]) for sx in (-1, 1)]
              + [([half, thick, wall_z], [0, sy * (half + thick), wall_z]) for sy in (-1, 1)])
     halves, centres = [b[0] for b in boxes], [b[1] for b in boxes]
     # One static body of five boxes, not five bodies: pybullet's client fetches each new body's info (~0.1 ms).
     room = sim.createMultiBody(0, sim.createCollisionShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=halves,
                                                                 collisionFramePositions=centres),
-                               sim.createVisualShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=halves,
-                                                          visualFramePositions=centres))
-    for i in range(len(boxes)):
-        sim.changeVisualShape(room, -1, shapeIndex=i, rgbaColor=FLOOR_RGBA if i == 0 else WALL_RGBA)
+                               sim.createVisualShapeArray([pb.GEOM_BOX] * (len(boxes) - 1), halfExtents=halves[1:],
+                                                          visualFramePositions=centres[1:]))
+    for i in range(len(boxes) - 1):
+        sim.changeVisualShape(room, -1, shapeIndex=i, rgbaColor=WALL_RGBA)
     halves, centres = [b[0] for b in GRIPPER_BOXES], [b[1] for b in GRIPPER_BOXES]
     col = sim.createCollisionShapeArray([pb.GEOM_BOX] * 3, halfExtents=halves, collisionFramePositions=centres)
     speck = sim.createVisualShape(pb.GEOM_BOX, halfExtents=[1e-4] * 3, visualFramePosition=GRIPPER_BOXES[0][1],
@@ -1826,8 +1849,8 @@ def object_count(cfg: Settings, scene: str, rng: np.random.Generator) -> tuple[i
 
 
 def scatter_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> list:
-    """(xyz, yaw) resting poses apart from each other, by rejection; an object with no room is
-    dropped from above onto whatever lies below."""
+    """(xyz, yaw) poses apart from each other, by rejection, resting on the floor; an object with no room
+    is dropped from above onto whatever lies below."""
     half, radius_m = cfg.workspace_m / 2, np.array([obj.radius_m for obj in objects])
     # Each object's tries (x, y pairs), then its yaw, drawn at once: rng.uniform's draws, one by one.
     draws = rng.random((len(objects), 2 * cfg.scatter_tries + 1))
@@ -1840,7 +1863,7 @@ def scatter_positions(objects: list, cfg: Settings, rng: np.random.Generator) ->
         clearance = radius_m[n] + radius_m[:n] + cfg.scatter_gap_m
         free = np.flatnonzero(np.all(np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) > clearance, axis=1))
         if len(free):
-            xy, z = tries[n, free[0]], obj.half_height_m + cfg.drop_gap_m
+            xy, z = tries[n, free[0]], obj.half_height_m
         else:
             xy, z = tries[n, -1], obj.half_height_m + cfg.no_room_drop_m
         placed_xy[n] = xy
@@ -1881,6 +1904,12 @@ def pile_positions(objects: list, cfg: Settings, rng: np.random.Generator) -> li
 SETTLE_CHECK_S = 1 / 30   # simulated time between checks that everything is at rest (a check costs a few steps)
 
 
+def put_to_sleep(sim, objects: list) -> None:
+    """Send resting objects to sleep: a resting scene then costs nothing per physics step until touched."""
+    for o in objects:
+        sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
+
+
 def settle(sim, objects: list, cfg: Settings, max_s: float) -> bool:
     """Step physics at settle_hz for at most max_s until every object is slower than settle_speed, then put
     them all to sleep; False if still moving. pybullet only lets bodies sleep after 2 s at rest; sending them
@@ -1893,8 +1922,7 @@ def settle(sim, objects: list, cfg: Settings, max_s: float) -> bool:
             if step % every == every - 1:
                 speeds = [sum(c * c for c in sim.getBaseVelocity(o.body)[0]) for o in objects]
                 if max(speeds, default=0.0) < cfg.settle_speed ** 2:
-                    for o in objects:
-                        sim.changeDynamics(o.body, -1, activationState=pb.ACTIVATION_STATE_SLEEP)
+                    put_to_sleep(sim, objects)
                     return True
         return False
     finally:
@@ -1935,7 +1963,11 @@ def build_scene(sim, cfg: Settings, scene: str, rng: np.random.Generator) -> Sce
     poses = (pile_positions if heaped else scatter_positions)(objects, cfg, rng)
     for obj, (xyz, yaw) in zip(objects, poses):
         sim.resetBasePositionAndOrientation(obj.body, xyz, quat_of(rotation(yaw, "z") @ obj.rest))
-    settle(sim, objects, cfg, cfg.settle_pile_s if heaped else cfg.settle_scatter_s)
+    # Primitives that all found room rest on the floor as placed (a face down); meshes, drops and piles settle.
+    if not heaped and all(o.model is None and xyz[2] == o.half_height_m for o, (xyz, _) in zip(objects, poses)):
+        put_to_sleep(sim, objects)
+    else:
+        settle(sim, objects, cfg, cfg.settle_pile_s if heaped else cfg.settle_scatter_s)
     if target_present:
         points, normals, area = target_surface(objects[0], cfg, rng)
     else:
@@ -2045,7 +2077,10 @@ class ObjectFindingEnv(gym.Env):
         """The RGB image and the ideal depth image, one render per camera, each with the renderer's near plane
         (what lies closer than the sensor's minimum range must still hide what is behind it)."""
         def render(T_world_camera, camera):
-            return render_rgbd(self.sim, T_world_camera, dataclasses.replace(camera, near_m=self.cfg.near_m))
+            camera = dataclasses.replace(camera, near_m=self.cfg.near_m)
+            rgb, depth_m = render_rgbd(self.sim, T_world_camera, camera)
+            draw_floor(rgb, depth_m, T_world_camera, camera, floor_half_m(self.cfg))
+            return rgb, depth_m
         rgb, depth_m = render(T_world_depth, self.rig.depth)
         if not self.rig.one_camera:
             rgb, _ = render(T_world_depth @ self.rig.T_depth_rgb, self.rig.rgb)
@@ -2225,7 +2260,9 @@ class ObjectFindingEnv(gym.Env):
         T[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)   # OpenCV axes: x right, y down
         T[:3, 3] = eye
         K = np.array([[height * 1.1, 0, width / 2], [0, height * 1.1, height / 2], [0, 0, 1]])
-        rgb, depth = render_rgbd(self.sim, T, Camera(width, height, K, 0.05, 4 * self.cfg.workspace_m))
+        camera = Camera(width, height, K, 0.05, 4 * self.cfg.workspace_m)
+        rgb, depth = render_rgbd(self.sim, T, camera)
+        draw_floor(rgb, depth, T, camera, floor_half_m(self.cfg))
         return paint_gripper(rgb, depth, T, K, self.gripper_pose())
 
     def __reduce__(self):
@@ -3022,7 +3059,7 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
                   "decision_ms")   # the columns of an evaluation CSV, one row per episode ...
 ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
-WORLD_REVISION = 6   # of the simulated world and the agents: raised by every change that alters the episodes
+WORLD_REVISION = 7   # of the simulated world and the agents: raised by every change that alters the episodes
                      # of a seed (2: mesh models as hulls, placed resting; scenes settle at 120 Hz; one 20 % rule)
 
 

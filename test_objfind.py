@@ -347,9 +347,9 @@ def test_every_scene_setting_changes_the_scene():
                  pile_spot_noise=0.5, pile_jitter_ratio=0.3, pile_layer_gap_m=0.03, drop_gap_m=0.02,
                  settle_pile_s=0.15, settle_speed=0.5, object_size_m=0.05, object_mass_kg=0.3,
                  object_friction=0.2, wall_height_m=0.3)
-    scattered = dict(scatter_gap_m=0.05, settle_scatter_s=0.02, drop_gap_m=0.02, object_size_m=0.05)
-    unchanged = []
-    for s, changes in ((of.TASKS["ip"], piles), (of.TASKS["ap"], scattered)):
+    scattered = dict(scatter_gap_m=0.05, settle_scatter_s=0.02, object_size_m=0.05)   # on a floor so small that
+    unchanged = []                                                                    # some cubes find no room
+    for s, changes in ((of.TASKS["ip"], piles), (of.TASKS["ap-real"], scattered)):
         base = scene_positions(s)
         assert np.array_equal(base, scene_positions(s))          # the same settings: the same scene
         unchanged += [name for name, value in changes.items()
@@ -2251,11 +2251,43 @@ def scene_fingerprint(task: str, scene: str, seeds) -> str:
 
 
 @pytest.mark.parametrize("task, scene, fingerprint", [
-    ("ap", "cubes", "80db80ac804076b8"), ("ip", "cubes", "d80256a05f7b2a1f"),
-    ("ip", "variable-primitives", "56206f65369384be"), ("ap-large", "cubes", "9f9a9fdc9dc609e6")])
+    ("ap", "cubes", "149b2f49a8dc437f"), ("ip", "cubes", "d80256a05f7b2a1f"),
+    ("ip", "variable-primitives", "56206f65369384be"), ("ap-large", "cubes", "4a2ffdbd8e6beedc")])
 def test_scene_generation_for_small_workspaces_leaves_the_simulation_presets_exactly(task, scene, fingerprint):
-    """Pile margins and spacing scale with the workspace; at 0.6 m and 1.2 m the scenes are those of world 6."""
+    """Pile margins and spacing scale with the workspace; at 0.6 m and 1.2 m the scenes are those of world 7."""
     assert scene_fingerprint(task, scene, range(3)) == fingerprint
+
+
+def test_scattered_primitives_are_placed_at_rest_on_the_floor(ap_env):
+    """A cube scene that found every cube room skips settling: woken and stepped for a second, no cube moves."""
+    for seed in range(3):
+        ap_env.reset(seed=seed)
+        before = [ap_env.sim.getBasePositionAndOrientation(o.body)[0] for o in ap_env.objects]
+        assert all(abs(z - o.half_height_m) < 1e-9 for (_, _, z), o in zip(before, ap_env.objects))
+        for o in ap_env.objects:
+            ap_env.sim.changeDynamics(o.body, -1, activationState=of.pb.ACTIVATION_STATE_WAKE_UP)
+        for _ in range(ap_env.cfg.physics_hz):
+            ap_env.sim.stepSimulation()
+        after = [ap_env.sim.getBasePositionAndOrientation(o.body)[0] for o in ap_env.objects]
+        assert np.abs(np.subtract(after, before)).max() < 5e-4
+
+
+def test_the_drawn_floor_is_the_floor_tinyrenderer_drew():
+    """draw_floor against the floor as a visual box: the same pixels, colour and depth (to 1e-5 m)."""
+    env = of.ObjectFindingEnv("ap", "cubes")
+    cfg = env.cfg
+    for seed in range(3):
+        env.reset(seed=seed)
+        T = env.gripper_pose() @ env.rig.T_tool_depth
+        rgb, depth = env._render(T)
+        floor = env.sim.createMultiBody(0, -1, env.sim.createVisualShape(
+            of.pb.GEOM_BOX, halfExtents=[of.floor_half_m(cfg)] * 2 + [cfg.wall_thickness_m],
+            visualFramePosition=[0, 0, -cfg.wall_thickness_m], rgbaColor=of.FLOOR_RGBA))
+        rgb_drawn, depth_drawn = of.render_rgbd(env.sim, T, of.dataclasses.replace(env.rig.depth, near_m=cfg.near_m))
+        env.sim.removeBody(floor)
+        assert np.array_equal(depth > 0, depth_drawn > 0) and np.array_equal(rgb, rgb_drawn)
+        assert np.abs(depth - depth_drawn).max() < 1e-5 and (depth > 0).mean() > 0.5
+    env.close()
 
 
 @pytest.mark.parametrize("task", ["ap-real", "ip-real"])
