@@ -1815,7 +1815,8 @@ def build_workspace(sim, cfg: Settings) -> tuple[int, int]:
     has no visual shape (draw_floor draws it). The gripper's only visual is a transparent speck (TinyRenderer
     would draw its collision shapes into the wrist view), a box: TinyRenderer tessellates a sphere anew in
     every world (0.3 ms). The outside view paints the gripper in."""
-    half, thick, wall_z, floor_half = cfg.workspace_m / 2, cfg.wall_thickness_m, cfg.wall_height_m / 2, floor_half_m(cfg)
+    half, thick, wall_z = cfg.workspace_m / 2, cfg.wall_thickness_m, cfg.wall_height_m / 2
+    floor_half = floor_half_m(cfg)
     boxes = ([([floor_half] * 2 + [thick], [0, 0, -thick])]   # (half extents, centre): the floor, then walls
              + [([thick, floor_half, wall_z], [sx * (half + thick), 0, wall_z]) for sx in (-1, 1)]
              + [([half, thick, wall_z], [0, sy * (half + thick), wall_z]) for sy in (-1, 1)])
@@ -3060,7 +3061,8 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
 ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
 WORLD_REVISION = 7   # of the simulated world and the agents: raised by every change that alters the episodes
-                     # of a seed (2: mesh models as hulls, placed resting; scenes settle at 120 Hz; one 20 % rule)
+                     # of a seed (2: mesh models as hulls, placed resting; scenes settle at 120 Hz; one 20 % rule;
+                     # 6: a new Bullet world per scene; 7: the floor drawn by draw_floor, primitives placed at rest)
 
 
 def parse_bool(text: str) -> bool:
