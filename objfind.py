@@ -1733,7 +1733,7 @@ class SceneObject:
     body: int = -1               # its pybullet body, once add_bodies has made it
 
 
-PRIMITIVE_KINDS = ("cube", "cuboid", "cylinder", "prism")
+PRIMITIVE_KINDS = ("cube", "cuboid", "cylinder", "prism")   # cubes-and-cuboids draws from the first two
 
 
 @functools.lru_cache(maxsize=64)
