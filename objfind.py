@@ -1410,7 +1410,8 @@ def draw_floor(rgb: np.ndarray, depth_m: np.ndarray, T_world_camera: np.ndarray,
         z = -origin[2] / ray[2]   # the depth at which each pixel's ray (world direction per metre) meets z = 0
     x, y = origin[0] + z * ray[0], origin[1] + z * ray[1]
     floor = (z > camera.near_m) & (z < camera.far_m) & (np.abs(x) <= half_m) & (np.abs(y) <= half_m)
-    depth_m[v[floor], u[floor]], rgb[v[floor], u[floor]] = z[floor], FLOOR_RGB8
+    hit = v[floor], u[floor]
+    depth_m[hit], rgb[hit] = z[floor], FLOOR_RGB8
 
 
 def add_detector_noise(detections: np.ndarray, rng: np.random.Generator, cfg: Settings) -> np.ndarray:
