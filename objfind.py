@@ -2945,11 +2945,23 @@ def package_versions() -> str:
             f"gymnasium={gym.__version__} opencv={cv2.__version__}")
 
 
+def world_identity(task: str, overrides: dict | None) -> str:
+    """The world a cell's episodes ran in: WORLD_REVISION, and if settings besides the target-size rule differ
+    from the task's preset, 8 hex digits of them ("7+1a2b3c4d"): a sensor point run with another camera is
+    another world, whatever its file is called."""
+    preset = TASKS[task]
+    changed = {k: v for k, v in (overrides or {}).items() if k != "target_size_known" and v != getattr(preset, k)}
+    if not changed:
+        return str(WORLD_REVISION)
+    as_json = json.dumps(changed, sort_keys=True, default=float)   # tuples as lists, numpy scalars as floats
+    return f"{WORLD_REVISION}+{hashlib.sha256(as_json.encode()).hexdigest()[:8]}"
+
+
 def cell_origin(agent: str, task: str, scene: str, policy: dict | None, overrides: dict | None) -> dict:
     """What made a cell's episodes, stamped on each of its CSV rows: a table refuses a cell made otherwise."""
     size_known = (overrides or {}).get("target_size_known", TASKS[task].target_size_known)
     return dict(agent=agent, task=task, scene=scene, weights=policy_fingerprint(policy),
-                target_size_known=size_known, world=WORLD_REVISION, versions=package_versions())
+                target_size_known=size_known, world=world_identity(task, overrides), versions=package_versions())
 
 
 def make_agent(name: str, cfg: Settings, seed: int, policy: dict | None = None):
@@ -3082,6 +3094,13 @@ def one_of(choices):
     return parse
 
 
+def world_tag(text: str) -> str:
+    """A world_identity: a revision, perhaps with the digits of its settings."""
+    if not re.fullmatch(r"\d+(\+[0-9a-f]{8})?", text):
+        raise ValueError(f"{text!r} is not a world (a revision, perhaps +8 hex digits of its settings)")
+    return text
+
+
 def fraction(text: str) -> float:
     value = float(text)
     if not 0 <= value <= 1:
@@ -3092,7 +3111,7 @@ def fraction(text: str) -> float:
 EPISODE_COLUMNS = dict(seed=int, target_present=parse_bool, success=parse_bool, steps=int,
                        target_seen_fraction=fraction, explored_fraction=fraction, decision_ms=float,
                        agent=one_of(list(BASELINES) + list(LEARNED)), task=one_of(list(TASKS)), scene=one_of(SCENES),
-                       weights=str, target_size_known=parse_bool, world=int, versions=str)
+                       weights=str, target_size_known=parse_bool, world=world_tag, versions=str)
 
 
 def checked_episode(row: dict, first: dict | None) -> dict:
@@ -3137,8 +3156,8 @@ def read_episodes(path: Path) -> list:
 
 def stored_cell(path: Path, seeds: list, origin: dict) -> list | None:
     """The rows of a finished cell: None if no CSV is there yet, its rows if they are exactly these seeds
-    made by this origin. A CSV of other seeds, or made by another agent, task, scene, weights or rule, is
-    another experiment: refused, never overwritten."""
+    made by this origin. A CSV of other seeds, or made by another agent, task, scene, weights, rule or world,
+    is another experiment: refused, never overwritten."""
     if not path.exists():
         return None
     if path.is_dir():
@@ -3147,8 +3166,11 @@ def stored_cell(path: Path, seeds: list, origin: dict) -> list | None:
     made = {k: rows[0][k] for k in CELL_IDENTITY} if rows else {}
     want = {k: origin[k] for k in CELL_IDENTITY}
     if rows and made != want:
-        describe = lambda o: (f"{o['agent']} on {o['task']}/{o['scene']} (weights {o['weights']}, target size "
-                              f"{'known' if o['target_size_known'] else 'unknown'}, world {o['world']})")
+        def describe(o):
+            revision, _, settings = o["world"].partition("+")
+            return (f"{o['agent']} on {o['task']}/{o['scene']} (weights {o['weights']}, target size "
+                    f"{'known' if o['target_size_known'] else 'unknown'}, world {revision}"
+                    + (f" with settings {settings})" if settings else ")"))
         raise UsageError(f"{str(path)} was made by {describe(made)}, not {describe(want)}: "
                          "pass another --out, or delete that file to replace it")
     have = [r["seed"] for r in rows]

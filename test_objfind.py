@@ -1,6 +1,7 @@
 """Tests for objfind: each asserts a behaviour that a wrong implementation would break."""
 import dataclasses
 import functools
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -831,10 +832,28 @@ def test_eval_csv_round_trips_for_resumed_tables(tmp_path):
     with pytest.raises(of.UsageError, match="made by gnbv on ap/cubes .weights none, target size known, world "
                                             ".., not gnbv on ap/cubes .weights none, target size unknown"):
         of.stored_cell(path, [3], ablation)
-    older_world = dict(origin, world=origin["world"] - 1)    # made before a change that alters episodes
+    older_world = dict(origin, world=str(of.WORLD_REVISION - 1))    # made before a change that alters episodes
     of.write_csv([dict(rows[0], **older_world)], path)
     with pytest.raises(of.UsageError, match=f"world {of.WORLD_REVISION - 1}., not .* world {of.WORLD_REVISION}"):
         of.stored_cell(path, [3], origin)
+
+
+def test_a_sensor_point_made_with_other_settings_is_refused_whatever_its_file_is_called(tmp_path):
+    rig = of.cell_origin("i3de", "ip", "cubes", None, of.RIG_SENSING)
+    assert re.fullmatch(rf"{of.WORLD_REVISION}\+[0-9a-f]{{8}}", rig["world"])
+    assert of.cell_origin("i3de", "ip", "cubes", None, dict(of.RIG_SENSING)) == rig
+    for plain in (None, {}, dict(target_size_known=False), dict(tof_noise_ratio=of.TASKS["ip"].tof_noise_ratio)):
+        assert of.cell_origin("i3de", "ip", "cubes", None, plain)["world"] == str(of.WORLD_REVISION)   # Table II's
+    path = tmp_path / "i3de-ip-rig-camera-1.csv"
+    of.write_csv(fake_rows(0, 2, "i3de", "ip", overrides=of.RIG_SENSING), path)
+    assert len(of.stored_cell(path, [0, 1], rig)) == 2
+    your_camera = of.cell_origin("i3de", "ip", "cubes", None, dict(of.RIG_SENSING, depth_width=320))
+    with pytest.raises(of.UsageError, match=rf"world {of.WORLD_REVISION} with settings [0-9a-f]{{8}}\), not .* "
+                                            rf"world {of.WORLD_REVISION} with settings [0-9a-f]{{8}}\)"):
+        of.stored_cell(path, [0, 1], your_camera)
+    of.write_csv([dict(row, world="7+zz") for row in fake_rows(0, 1)], path)
+    with pytest.raises(of.UsageError, match="line 2: '7.zz' is not a world"):
+        of.read_episodes(path)
 
 
 def test_table_two_pools_the_no_target_scenes_of_each_agent():
