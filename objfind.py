@@ -2075,14 +2075,17 @@ class ObjectFindingEnv(gym.Env):
         self.view = WristView(rgb, depth_m, detections, T_believed)
         return self.searcher.observe(depth_m, T_believed, detections=detections)
 
+    def _render_world(self, T_world_camera: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """The world as a camera sees it: TinyRenderer's image, with the floor (no visual shape) drawn in."""
+        rgb, depth_m = render_rgbd(self.sim, T_world_camera, camera)
+        draw_floor(rgb, depth_m, T_world_camera, camera, floor_half_m(self.cfg))
+        return rgb, depth_m
+
     def _render(self, T_world_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The RGB image and the ideal depth image, one render per camera, each with the renderer's near plane
         (what lies closer than the sensor's minimum range must still hide what is behind it)."""
         def render(T_world_camera, camera):
-            camera = dataclasses.replace(camera, near_m=self.cfg.near_m)
-            rgb, depth_m = render_rgbd(self.sim, T_world_camera, camera)
-            draw_floor(rgb, depth_m, T_world_camera, camera, floor_half_m(self.cfg))
-            return rgb, depth_m
+            return self._render_world(T_world_camera, dataclasses.replace(camera, near_m=self.cfg.near_m))
         rgb, depth_m = render(T_world_depth, self.rig.depth)
         if not self.rig.one_camera:
             rgb, _ = render(T_world_depth @ self.rig.T_depth_rgb, self.rig.rgb)
@@ -2262,9 +2265,7 @@ class ObjectFindingEnv(gym.Env):
         T[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)   # OpenCV axes: x right, y down
         T[:3, 3] = eye
         K = np.array([[height * 1.1, 0, width / 2], [0, height * 1.1, height / 2], [0, 0, 1]])
-        camera = Camera(width, height, K, 0.05, 4 * self.cfg.workspace_m)
-        rgb, depth = render_rgbd(self.sim, T, camera)
-        draw_floor(rgb, depth, T, camera, floor_half_m(self.cfg))
+        rgb, depth = self._render_world(T, Camera(width, height, K, 0.05, 4 * self.cfg.workspace_m))
         return paint_gripper(rgb, depth, T, K, self.gripper_pose())
 
     def __reduce__(self):
