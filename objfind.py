@@ -36,7 +36,6 @@ import argparse
 import copy
 import csv
 import functools
-import gc
 import hashlib
 import importlib.metadata
 import itertools
@@ -46,7 +45,6 @@ import os
 import platform
 import re
 import shlex
-import shutil
 import signal
 import sys
 import threading
@@ -2604,56 +2602,29 @@ CURVE_SIZE = (720, 480)     # width, height of a learning-curve PNG
 CURVE_MARGINS = (70, 20, 34, 50)   # left, right, top, bottom: room for the tick labels and axis titles
 
 
-def nice_ticks(top: float, count: int = 5) -> np.ndarray:
-    """Round tick values from 0 to the first at or above `top`: steps of 1, 2 or 5 times a power of ten."""
-    raw = max(top, 1e-9) / count
-    step = min((m * 10 ** np.floor(np.log10(raw)) for m in (1, 2, 5, 10)), key=lambda v: abs(v - raw))
-    return np.arange(np.ceil(top / step - 1e-9) + 1) * step
+def save_figure(figure, path: Path) -> None:
+    """A matplotlib figure to a PNG at 100 dots per inch, replaced atomically."""
+    replace_atomically(path, lambda tmp: figure.savefig(tmp, dpi=100))
 
 
 def plot_learning_curve(rows: list, path: Path) -> None:
-    """Success % and mean episode length of the sampled policy per update against env steps: two panels
-    with ticks and labelled axes, drawn with OpenCV (no plotting library)."""
-    width, height = CURVE_SIZE
-    left, right, top, bottom = CURVE_MARGINS
-    image = np.full((height, width, 3), 255, np.uint8)
-    font, black, grey = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0), (215, 215, 215)
-    x = np.array([float(r["env_steps"]) for r in rows])
-    x_max = float(x.max()) if len(x) else 1.0
-    x_ticks = nice_ticks(x_max)
-    x_right = max(x_max, float(x_ticks[-1]))
-    plot_w = width - left - right
-    panel_h = (height - top - bottom - 30) // 2
-    to_px = lambda v: left + v / x_right * plot_w
-    panels = (("success", "success (%) of the sampled policy, one point per PPO update", 100.0, (40, 150, 40)),
-              ("episode_length", "mean episode length (steps)", None, (40, 80, 200)))   # BGR
-    for panel, (key, title, scale, colour) in enumerate(panels):
-        y0 = top + panel * (panel_h + 30)                     # the panel's top edge
-        y = np.array([float(r[key]) for r in rows]) * (scale or 1.0)
-        ok = np.isfinite(y)
-        y_ticks = nice_ticks(100.0 if scale else max(1.0, float(np.nanmax(y)) if ok.any() else 1.0), 4)
-        y_top = max(float(y_ticks[-1]), 1e-9)
-        to_py = lambda v: y0 + panel_h - v / y_top * panel_h
-        for t in y_ticks:                                  # horizontal grid lines and y tick labels
-            py = int(round(to_py(t)))
-            cv2.line(image, (left, py), (left + plot_w, py), grey, 1)
-            text = f"{t:g}"
-            (tw, th), _ = cv2.getTextSize(text, font, 0.4, 1)
-            cv2.putText(image, text, (left - 6 - tw, py + th // 2), font, 0.4, black, 1, cv2.LINE_AA)
-        for t in x_ticks:
-            px = int(round(to_px(t)))
-            cv2.line(image, (px, y0 + panel_h), (px, y0 + panel_h + 4), black, 1)
-            if panel == 1:                                     # x tick labels under the lower panel only
-                text = f"{t / 1e6:g}M" if t >= 1e6 else f"{t / 1e3:g}k" if t >= 1e3 else f"{t:g}"
-                (tw, th), _ = cv2.getTextSize(text, font, 0.4, 1)
-                cv2.putText(image, text, (px - tw // 2, y0 + panel_h + 8 + th), font, 0.4, black, 1, cv2.LINE_AA)
-        cv2.rectangle(image, (left, y0), (left + plot_w, y0 + panel_h), black, 1)
-        if ok.sum() >= 2:
-            points = np.stack([to_px(x[ok]), to_py(y[ok])], 1).astype(np.int32)
-            cv2.polylines(image, [points], False, colour, 2, cv2.LINE_AA)
-        cv2.putText(image, title, (left, y0 - 9), font, 0.5, colour, 1, cv2.LINE_AA)
-    cv2.putText(image, "env steps", (left + plot_w // 2 - 35, height - 10), font, 0.5, black, 1, cv2.LINE_AA)
-    write_image(path, image[:, :, ::-1])
+    """Success % and mean episode length of the sampled policy per update against env steps: two panels."""
+    from matplotlib.figure import Figure   # here, not at the top: worker processes never plot
+    from matplotlib.ticker import EngFormatter
+    (width, height), (left, right, top, bottom) = CURVE_SIZE, CURVE_MARGINS
+    figure = Figure(figsize=(width / 100, height / 100))
+    figure.subplots_adjust(left / width, bottom / height, 1 - right / width, 1 - top / height, hspace=0.35)
+    steps = [float(r["env_steps"]) for r in rows]
+    for ax, key, scale, title in zip(figure.subplots(2, 1, sharex=True), ("success", "episode_length"), (100, 1),
+                                     ("success (%) of the sampled policy, one point per PPO update",
+                                      "mean episode length (steps)")):
+        ax.plot(steps, [float(r[key]) * scale for r in rows], color="C2" if scale == 100 else "C0")
+        ax.set_title(title, loc="left", fontsize=9)
+        ax.set_ylim(0, 100 if scale == 100 else None)
+        ax.grid(alpha=0.3)
+    ax.set_xlabel("env steps")
+    ax.xaxis.set_major_formatter(EngFormatter(sep=""))
+    save_figure(figure, path)
 
 
 # ================================================================================================
@@ -3214,123 +3185,6 @@ def table_markdown(cells: dict, episodes: int, versions: set) -> str:
 
 
 # ================================================================================================
-# Sensor study (Sec. III-D): success and steps as the depth camera's errors grow, on the 0.6 m presets.
-# ================================================================================================
-
-RIG_ERRORS = {k: RIG_SENSING[k] for k in ("tof_noise_ratio", "tof_missing_share", "tof_edge_jump_m",
-                                          "tof_edge_drop_share", "hand_eye_error_m", "hand_eye_error_rad",
-                                          "area_median_px")}   # the rig's errors, on the presets' own camera
-SENSOR_SWEEPS = (   # (name, axis title, a level in words, what it sets, four levels: none, the rig's, 2x, 4x or more)
-    ("depth noise", "depth noise (% of the distance)", lambda x: f"{x:g} % of the distance",
-     lambda x: dict(tof_noise_ratio=x / 100), (0, 1, 2, 4)),
-    ("missing returns", "missing returns (% of the pixels)", lambda x: f"{x:g} % of the pixels",
-     lambda x: dict(tof_missing_share=x / 100), (0, 2, 10, 30)),
-    ("hand-eye error", "hand-eye error (mm, and mm / 3 degrees)", lambda x: f"{x:g} mm, {x / 3:g} deg",
-     lambda x: dict(hand_eye_error_m=x / 1000, hand_eye_error_rad=np.radians(x / 3)), (0, 3, 6, 12)),
-)
-SENSOR_AGENTS = (("a3de", "ap", None), ("i3de", "ip", None),   # (agent, task, weights/ file or the default)
-                 ("i3de", "ip", "i3de-rig.pt"))                 # I3DE trained with the rig's camera too
-SENSOR_BASELINES = (("gnbv", "ap"), ("ges", "ip"))               # with the ideal camera and the rig's
-
-
-def sensor_points() -> list:
-    """Every (sweep, level, overrides) of the study: the ideal camera (level 0 of every sweep), the sweeps'
-    other levels, the rig's errors on the presets' camera, and the rig's camera as the real presets have it."""
-    points = [("ideal", 0, {})]
-    for name, _, _, overrides, levels in SENSOR_SWEEPS:
-        points += [(name, level, overrides(level)) for level in levels[1:]]
-    return points + [("rig errors", 1, RIG_ERRORS), ("rig camera", 1, RIG_SENSING)]
-
-
-def point_file(agent: str, task: str, weights: str | None, sweep: str, level: float) -> str:
-    tag = f"{agent}-{Path(weights).stem}" if weights else agent
-    return f"{tag}-{task}-{sweep.replace(' ', '-')}-{level:g}.csv"
-
-
-def run_sensor_study(out: Path, episodes: int, seed: int, workers: int) -> dict:
-    """Every point's episodes (a CSV each, read back when already there), as {(row, sweep, level): summary}."""
-    seeds, cells = list(range(seed, seed + episodes)), {}
-    runs = [((agent, task, weights), point) for agent, task, weights in SENSOR_AGENTS for point in sensor_points()]
-    runs += [((agent, task, None), point) for agent, task in SENSOR_BASELINES
-             for point in sensor_points() if point[0] in ("ideal", "rig camera")]
-    policies = {row: learned_policy(row[0], row[1], row[2] and default_weights(*row[:2]).with_name(row[2]))
-                for row in {row for row, _ in runs} if row[0] in LEARNED}   # each checkpoint read once
-    for (agent, task, weights), (sweep, level, overrides) in runs:
-        policy = policies.get((agent, task, weights))
-        path = out / point_file(agent, task, weights, sweep, level)
-        rows = stored_cell(path, seeds, cell_origin(agent, task, "cubes", policy, overrides))
-        if rows is None:
-            rows = evaluate(agent, task, "cubes", episodes, seed, workers, policy=policy, overrides=overrides)
-            write_csv(rows, path)
-        cells[(agent, task, weights), sweep, level] = summarise(rows)
-    return cells
-
-
-def sensor_markdown(cells: dict, episodes: int) -> str:
-    """The study as a table: a row per point, a column per agent, success % [95 %] / steps."""
-    rows = list(SENSOR_AGENTS) + [(agent, task, None) for agent, task in SENSOR_BASELINES]
-    words = {name: describe for name, _, describe, _, _ in SENSOR_SWEEPS}
-    header = ["depth camera"] + [f"{a.upper()}{f' ({w})' if w else ''}, {t}" for a, t, w in rows]
-    lines = [f"Success % [95 %] / average steps over {episodes} paired episodes per point on cubes (episode i is "
-             "scene seed + i at every point).", "", "| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
-    for sweep, level, _ in sensor_points():
-        name = {"ideal": "ideal", "rig errors": "the rig's errors on this camera (README)",
-                "rig camera": "the rig's camera (`RIG_SENSING`)"}.get(sweep) or f"{sweep} {words[sweep](level)}"
-        values = [cells.get((row, sweep, level)) for row in rows]
-        lines.append(f"| {name} | " + " | ".join("" if c is None else f"{c['success']:.1f} [{c['success_lo']:.1f}, "
-                                                 f"{c['success_hi']:.1f}] / {c['steps']:.2f}" for c in values) + " |")
-    return "\n".join(lines)
-
-
-def plot_sensor_study(cells: dict, path: Path) -> None:
-    """Per sweep, and for the rig as a whole, success % (with its 95 % interval) and average steps of each
-    learned agent against the level: a row of panels each, drawn with OpenCV."""
-    width, height, left, right, top, gap, bottom = 1040, 560, 60, 10, 40, 60, 50
-    image = np.full((height, width, 3), 255, np.uint8)
-    font, black, grey = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0), (215, 215, 215)
-    colours = ((200, 80, 40), (40, 150, 40), (40, 80, 200))   # BGR, one per learned row
-    panels = [(title, [(f"{level:g}", ("ideal", 0) if level == 0 else (sweep, level)) for level in levels])
-              for sweep, title, _, _, levels in SENSOR_SWEEPS]
-    panels.append(("the rig (RIG_SENSING)", [("ideal", ("ideal", 0)), ("its errors", ("rig errors", 1)),
-                                             ("its camera", ("rig camera", 1))]))
-    panel_w, plot_h = (width - left - right) // len(panels), (height - top - gap - bottom) // 2
-    found = {(row, point): cells.get((row, *point)) for row in SENSOR_AGENTS for _, ticks in panels
-             for _, point in ticks}
-    most_steps = max([c["steps"] for c in found.values() if c] + [1.0])
-    metrics = (("success %", "success", (50.0, 100.0), (50, 60, 70, 80, 90, 100)),
-               ("average steps", "steps", (0.0, float(nice_ticks(most_steps, 4)[-1])), nice_ticks(most_steps, 4)))
-    for m, (ylabel, key, (y_low, y_high), ticks) in enumerate(metrics):
-        y0 = top + m * (plot_h + gap)
-        to_py = lambda v: int(round(y0 + plot_h - (min(max(v, y_low), y_high) - y_low) / (y_high - y_low) * plot_h))
-        cv2.putText(image, ylabel, (4, y0 - 8), font, 0.4, black, 1, cv2.LINE_AA)
-        for p, (title, levels) in enumerate(panels):
-            x0, w = left + p * panel_w, panel_w - 30
-            to_px = lambda i: int(round(x0 + 20 + i * (w - 40) / (len(levels) - 1)))
-            for t in ticks:
-                cv2.line(image, (x0, to_py(t)), (x0 + w, to_py(t)), grey, 1)
-                if p == 0:
-                    cv2.putText(image, f"{t:g}", (x0 - 30, to_py(t) + 4), font, 0.4, black, 1, cv2.LINE_AA)
-            cv2.rectangle(image, (x0, y0), (x0 + w, y0 + plot_h), black, 1)
-            for i, (text, _) in enumerate(levels):
-                (tw, _), _ = cv2.getTextSize(text, font, 0.4, 1)
-                cv2.putText(image, text, (to_px(i) - tw // 2, y0 + plot_h + 16), font, 0.4, black, 1, cv2.LINE_AA)
-            if m == len(metrics) - 1:
-                cv2.putText(image, title, (x0, y0 + plot_h + 36), font, 0.4, black, 1, cv2.LINE_AA)
-            for r, row in enumerate(SENSOR_AGENTS):
-                series = [(i, found[row, point]) for i, (_, point) in enumerate(levels)]
-                for i, c in series:
-                    if c and key == "success":
-                        cv2.line(image, (to_px(i) + 2 * r, to_py(c["success_lo"])),
-                                 (to_px(i) + 2 * r, to_py(c["success_hi"])), colours[r], 1)
-                points = np.array([(to_px(i) + 2 * r, to_py(c[key])) for i, c in series if c], np.int32)
-                if len(points) >= 2:
-                    cv2.polylines(image, [points], False, colours[r], 2, cv2.LINE_AA)
-    for r, row in enumerate(SENSOR_AGENTS):
-        text = f"{row[0].upper()}{f' ({row[2]})' if row[2] else ''} on {row[1]}"
-        cv2.putText(image, text, (left + 110 + 260 * r, 20), font, 0.5, colours[r], 1, cv2.LINE_AA)
-    write_image(path, image[:, :, ::-1])
-
-# ================================================================================================
 # Demo: pictures of an episode (outside, wrist camera, volume, state) to a PNG and an MP4.
 # ================================================================================================
 
@@ -3422,9 +3276,9 @@ def write_contact_sheet(path: Path, frames: list) -> None:
 
 
 def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
-             policy: dict | None = None, record: Path | None = None) -> tuple[Path, Path, dict]:
+             policy: dict | None = None) -> tuple[Path, Path, dict]:
     """One episode to an MP4 (every step) and a PNG contact sheet (four moments of it); a learned agent
-    plays `policy`, or its shipped weights. With `record`, also the episode as a recording (`replay`)."""
+    plays `policy`, or its shipped weights."""
     if agent_name in LEARNED and policy is None:
         policy = learned_policy(agent_name, task)
     env = ObjectFindingEnv(task, scene, seed=seed)
@@ -3432,22 +3286,15 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
     state, info = env.reset()
     agent.reset(env.searcher, env.gripper_pose())
     frames = [demo_frame(env, state, f"{task}/{scene} seed {seed}: start")]
-    views, actions = [(env.view, env.gripper_pose())], []   # what the searcher consumed, for a recording
     done = False
     while not done:
-        actions.append(agent.act(env.searcher, env.gripper_pose()))
-        state, reward, done, _, info = env.step(actions[-1])
-        if not info.get("terminated_by_agent"):
-            views.append((env.view, env.gripper_pose()))
+        state, reward, done, _, info = env.step(agent.act(env.searcher, env.gripper_pose()))
         status = (f"step {info['steps']}: seen {info['target_seen_fraction']:.2f}, "
                   f"explored {info['explored_fraction']:.2f}")
         if done:
             status += "  SUCCESS" if info["success"] else "  FAILURE"
         frames.append(demo_frame(env, state, status))
-    meta = recording_meta(env, agent_name, seed)
     env.close()
-    if record is not None:
-        write_recording(record, meta, views, actions)
     stem = writable_folder(out_dir) / f"demo-{task}-{scene}-{agent_name}"
     png, mp4 = stem.with_suffix(".png"), stem.with_suffix(".mp4")
     write_contact_sheet(png, frames)
@@ -3468,432 +3315,6 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
             raise OSError(f"the video holds {read} of its {len(frames)} frames (a full disk?)")
     replace_atomically(mp4, write_video)
     return png, mp4, info
-
-
-
-# Recordings: an episode as a real RGB-D logger would write it, and replayed through ArmSearch.
-# ================================================================================================
-
-RECORDING_FORMAT = "objfind-recording/1"
-DEPTH_PNG_M = 0.001   # a 16-bit depth PNG holds millimetres (0: no return), as RealSense and ROS loggers write
-TOOL_FRAME = ("tool frame: origin between the fingertips; x to the gripper's right, y away from its front, z along "
-              "the approach axis (out of the palm); the workspace frame: the floor's centre, z up")
-FRAME_FILES = {"color": "color.png", "depth": "depth.png", "pose": "pose.json",    # what a logger writes
-               "depth_m": "depth.npy", "detections": "detections.npy"}           # what the searcher consumed
-
-
-def frame_file(folder: Path, index: int, kind: str) -> Path:
-    return folder / "frames" / f"{index:06d}-{FRAME_FILES[kind]}"
-
-
-def camera_json(camera: Camera) -> dict:
-    return dict(width=camera.width, height=camera.height, K=camera.K.tolist(), near_m=camera.near_m,
-                far_m=None if np.isinf(camera.far_m) else camera.far_m)
-
-
-def recording_meta(env: ObjectFindingEnv, agent_name: str, seed: int) -> dict:
-    """Everything of a recording but its frames: the rig, the workspace and the told target size."""
-    rig, cfg = env.searcher.rig, env.cfg   # the calibration the robot believes
-    half = cfg.workspace_m / 2
-    return dict(format=RECORDING_FORMAT, source=f"objfind simulation: {agent_name} on {env.task}/{env.scene}",
-                task=env.task, settings={}, seed=seed, target_area_m2=env.searcher.target_area_m2,
-                depth_camera=camera_json(rig.depth), rgb_camera=camera_json(rig.rgb),
-                T_depth_rgb=rig.T_depth_rgb.tolist(), T_tool_depth=rig.T_tool_depth.tolist(),
-                T_base_workspace=np.eye(4).tolist(),
-                workspace_box_m=dict(lo=[-half, -half, 0.0], hi=[half, half, cfg.ceiling_m]),
-                tool_frame=TOOL_FRAME, depth_png_m=DEPTH_PNG_M)
-
-
-def write_recording(folder: Path, meta: dict, views: list, actions: list) -> None:
-    """The frames (WristView, T_world_tool) and the agent's actions into a new folder, made complete under a
-    temporary name and then renamed: an interrupted run leaves no half recording."""
-    folder = Path(folder)
-    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
-        raise UsageError(f"{str(folder)!r} exists and is not an empty folder: a recording needs a new one")
-    if not folder.parent.is_dir():
-        raise UsageError(f"the parent of the recording folder {str(folder)!r} does not exist")
-    tmp = folder.with_name(f".{folder.name}.{os.getpid()}.partial")
-    try:
-        (tmp / "frames").mkdir(parents=True)
-        for i, (view, T_world_tool) in enumerate(views):
-            depth_mm = np.clip(np.round(view.depth_m / DEPTH_PNG_M), 0, 65535).astype(np.uint16)
-            written = [cv2.imwrite(str(frame_file(tmp, i, "color")), cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR)),
-                       cv2.imwrite(str(frame_file(tmp, i, "depth")), depth_mm)]
-            if not all(written):
-                raise OSError("OpenCV could not write an image")
-            np.save(frame_file(tmp, i, "depth_m"), view.depth_m)
-            np.save(frame_file(tmp, i, "detections"), view.detections)
-            pose = dict(T_base_tool=T_world_tool.tolist(), T_base_depth=view.T_world_camera.tolist())
-            frame_file(tmp, i, "pose").write_text(json.dumps(pose))
-        (tmp / "recording.json").write_text(json.dumps(dict(meta, frames=len(views)), indent=1))
-        with open(tmp / "actions.csv", "w", newline="") as f:   # what the recording's own agent did
-            writer = csv.writer(f)
-            writer.writerow(("frame",) + ACTION_NAMES)
-            writer.writerows([i, *map(float, action)] for i, action in enumerate(actions))
-        if folder.exists():
-            folder.rmdir()
-        os.rename(tmp, folder)
-    except OSError as error:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise UsageError(f"could not write the recording {str(folder)!r} ({error.strerror or error})") from None
-
-
-def checked_matrix(value, name: str, shape: tuple) -> np.ndarray:
-    """A JSON value as a finite float64 array of `shape`, or a ValueError naming it."""
-    try:
-        array = np.array(value, np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} is not a {shape[0]} x {shape[1]} matrix of numbers") from None
-    if array.shape != shape or not np.all(np.isfinite(array)):
-        raise ValueError(f"{name} is not a {shape[0]} x {shape[1]} matrix of finite numbers")
-    return array
-
-
-def checked_transform(value, name: str) -> np.ndarray:
-    """A 4 x 4 rigid transform: rotation orthonormal with determinant 1, last row 0 0 0 1."""
-    T = checked_matrix(value, name, (4, 4))
-    R = T[:3, :3]
-    if not (np.allclose(T[3], [0, 0, 0, 1]) and np.allclose(R @ R.T, np.eye(3), atol=1e-4)
-            and np.linalg.det(R) > 0):
-        raise ValueError(f"{name} is not a rigid transform (a rotation and a translation, last row 0 0 0 1)")
-    return T
-
-
-def checked_camera(value, name: str) -> Camera:
-    """A camera's JSON: whole width and height, fx and fy above 0, the principal point on the image."""
-    if not isinstance(value, dict) or not {"width", "height", "K"} <= set(value):
-        raise ValueError(f"{name} needs width, height and K")
-    width, height = value["width"], value["height"]
-    if not all(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 10_000 for v in (width, height)):
-        raise ValueError(f"{name}: width and height must be whole numbers of pixels")
-    K = checked_matrix(value["K"], f"{name}.K", (3, 3))
-    if not (K[0, 0] > 0 and K[1, 1] > 0 and 0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height
-            and np.allclose(K[2], [0, 0, 1])):
-        raise ValueError(f"{name}.K does not fit a {width} x {height} image (fx, fy > 0, the principal point on it)")
-    near, far = value.get("near_m", 0.0), value.get("far_m")
-    far = np.inf if far is None else far
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (near, far)) or not 0 <= near < far:
-        raise ValueError(f"{name}: near_m and far_m must be numbers with 0 <= near_m < far_m")
-    return Camera(width, height, K, float(near), float(far))
-
-
-def read_image(path: Path, shape: tuple, dtype, what: str) -> np.ndarray:
-    """An image file of exactly `shape` and `dtype`, or a ValueError saying how it differs."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
-    if image is None:
-        raise ValueError(f"{what} {path.name} is missing or not an image")
-    if image.dtype != dtype or image.shape != shape:
-        raise ValueError(f"{what} {path.name} is {image.shape} {image.dtype}, the recording's camera needs "
-                         f"{shape} {np.dtype(dtype)}")
-    return image
-
-
-def read_array(path: Path, shape: tuple, low: float, high: float, what: str) -> np.ndarray:
-    try:
-        array = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as error:
-        raise ValueError(f"{what} {path.name} is missing or unreadable ({error})") from None
-    if array.shape != shape or array.dtype.kind != "f" or not np.all((array >= low) & (array <= high)):
-        raise ValueError(f"{what} {path.name} must be {shape} floats in [{low}, {high}]")
-    return array.astype(np.float32)
-
-
-def read_recording(folder: Path, depth_source: str | None = None, masks: Path | None = None) -> tuple:
-    """A recording, every file checked before anything runs: (settings, rig, meta, frames), each frame a dict
-    of depth_m, rgb, detections (or None: the colour detector's) and the poses. depth_source "exact" reads
-    the float depth the simulated searcher consumed, "png" the logger's millimetres (default: exact if there)."""
-    folder = Path(folder)
-    try:
-        try:
-            meta = json.loads((folder / "recording.json").read_text())
-        except OSError:
-            raise ValueError(f"{str(folder)!r} holds no readable recording.json") from None
-        except json.JSONDecodeError as error:
-            raise ValueError(f"recording.json is not JSON (line {error.lineno}: {error.msg})") from None
-        if not isinstance(meta, dict) or meta.get("format") != RECORDING_FORMAT:
-            raise ValueError(f"recording.json is not in the format {RECORDING_FORMAT!r}")
-        if meta.get("task") not in TASKS or not isinstance(meta.get("settings", {}), dict):
-            raise ValueError(f"recording.json: task must be one of {', '.join(TASKS)}, settings an object")
-        try:
-            cfg = dataclasses.replace(TASKS[meta["task"]], **meta.get("settings", {}))
-        except TypeError as error:
-            raise ValueError(f"recording.json settings: {error}") from None
-        depth, rgb = checked_camera(meta.get("depth_camera"), "depth_camera"), checked_camera(meta.get("rgb_camera"), "rgb_camera")
-        T_depth_rgb = checked_transform(meta.get("T_depth_rgb"), "T_depth_rgb")
-        if camera_json(rgb) == camera_json(depth) and np.array_equal(T_depth_rgb, np.eye(4)):
-            rgb = depth   # one RGB-D camera
-        rig = Rig(depth, rgb, checked_transform(meta.get("T_tool_depth"), "T_tool_depth"), T_depth_rgb)
-        meta["T_base_workspace"] = checked_transform(meta.get("T_base_workspace", np.eye(4).tolist()),
-                                                     "T_base_workspace")
-        half = cfg.workspace_m / 2
-        box = meta.get("workspace_box_m", {})
-        if not (isinstance(box, dict) and np.allclose(np.array([box.get("lo"), box.get("hi")], dtype=float),
-                                                      [[-half, -half, 0], [half, half, cfg.ceiling_m]])):
-            raise ValueError(f"workspace_box_m must be the task's box, lo [{-half}, {-half}, 0] and hi "
-                             f"[{half}, {half}, {cfg.ceiling_m}] in the workspace frame: set settings.workspace_m")
-        area = meta.get("target_area_m2")
-        if area is not None and not (isinstance(area, (int, float)) and 0 < area < np.inf):
-            raise ValueError("target_area_m2 must be a positive number of m^2, or null when not told")
-        count = meta.get("frames")
-        if not isinstance(count, int) or count < 1:
-            raise ValueError("recording.json: frames must be the number of frames, at least 1")
-        named = {int(p.name[:6]) for p in (folder / "frames").glob("[0-9]" * 6 + "-*")}
-        if any(i >= count for i in named):
-            raise ValueError(f"frames/{max(named):06d}-* lies beyond the {count} frames recording.json lists")
-        if depth_source is None:
-            depth_source = "exact" if frame_file(folder, 0, "depth_m").is_file() else "png"
-        scale = float(meta.get("depth_png_m", DEPTH_PNG_M))
-        frames = []
-        for i in range(count):
-            if i not in named:
-                raise ValueError(f"frame {i} of {count} is missing (frames/{i:06d}-*)")
-            try:
-                pose = json.loads(frame_file(folder, i, "pose").read_text())
-                T_base_tool = checked_transform(pose["T_base_tool"], f"frame {i}: T_base_tool")
-                T_base_depth = (checked_transform(pose["T_base_depth"], f"frame {i}: T_base_depth")
-                                if "T_base_depth" in pose else None)
-            except (OSError, json.JSONDecodeError, KeyError, TypeError) as error:
-                raise ValueError(f"frame {i}: {frame_file(folder, i, 'pose').name} is unreadable "
-                                 f"({type(error).__name__}: {error})") from None
-            colour = read_image(frame_file(folder, i, "color"), (rgb.height, rgb.width, 3), np.uint8, "colour image")
-            depth_mm = read_image(frame_file(folder, i, "depth"), (depth.height, depth.width), np.uint16, "depth image")
-            if depth_source == "exact":
-                depth_m = read_array(frame_file(folder, i, "depth_m"), depth_mm.shape, 0, np.inf, "depth")
-                detections = read_array(frame_file(folder, i, "detections"), colour.shape[:2], 0, 1, "detections")
-            else:
-                depth_m, detections = depth_mm.astype(np.float32) * np.float32(scale), None
-            if masks is not None:
-                mask = read_image(Path(masks) / f"{i:06d}.png", colour.shape[:2], np.uint8, "detection mask")
-                detections = mask.astype(np.float32) / 255
-            frames.append(dict(rgb=cv2.cvtColor(colour, cv2.COLOR_BGR2RGB), depth_m=depth_m, detections=detections,
-                               T_base_tool=T_base_tool, T_base_depth=T_base_depth))
-    except ValueError as error:
-        raise UsageError(f"recording {str(folder)!r}: {error}") from None
-    return cfg, rig, meta, frames
-
-
-def recorded_actions(folder: Path) -> list | None:
-    """The recording's own agent's actions (a simulated recording has them), or None."""
-    try:
-        with open(Path(folder) / "actions.csv", newline="") as f:
-            return [np.array([float(row[name]) for name in ACTION_NAMES]) for row in csv.DictReader(f)]
-    except (OSError, KeyError, ValueError):
-        return None
-
-
-def replay(cfg: Settings, rig: Rig, meta: dict, frames: list, agent_name: str, policy: dict | None = None,
-           seed: int | None = None) -> tuple[list, list, list]:
-    """The recording's frames through ArmSearch with an agent until it stops or the frames end:
-    (rows of the replay CSV, states, contact-sheet pictures)."""
-    searcher = Searcher(cfg, rig)
-    agent = make_agent(agent_name, cfg, meta.get("seed", 0) if seed is None else seed, policy)
-    arm = ArmSearch(searcher, agent, meta["T_base_workspace"], meta.get("target_area_m2"))
-    rows, states, pictures = [], [], []
-    for i, frame in enumerate(frames):
-        detections = frame["detections"] if frame["detections"] is not None else detect_target(frame["rgb"])
-        action, T_goal = arm.step(frame["depth_m"], frame["T_base_tool"], detections=detections,
-                                  T_base_depth=frame["T_base_depth"])
-        T_tool = arm.in_workspace(frame["T_base_tool"])
-        states.append(searcher.state(T_tool))
-        row = dict(frame=i, **{n: float(a) for n, a in zip(ACTION_NAMES, action)}, stop=T_goal is None)
-        goal = dict(zip(("goal_x_m", "goal_y_m", "goal_z_m", "goal_qx", "goal_qy", "goal_qz", "goal_qw"),
-                        [None] * 7 if T_goal is None else [*T_goal[:3, 3], *quat_of(T_goal[:3, :3])]))
-        rows.append(row | {k: v if v is None else float(v) for k, v in goal.items()})
-        command = "stop: the search ends" if T_goal is None else "move to ({:.3f}, {:.3f}, {:.3f}) m".format(*T_goal[:3, 3])
-        pictures.append(np.concatenate([
-            wrist_panel(frame["rgb"], detections, searcher.detection_threshold),
-            volume_panel(searcher, T_tool), bins_panel(states[-1]),
-            label(np.full((PANEL[1], PANEL[0], 3), 255, np.uint8), f"frame {i}: {command}")], axis=1))
-        if T_goal is None:
-            break
-    return rows, states, pictures
-
-
-# ================================================================================================
-# Bench: where the time of one env step goes, and env steps/s over worker processes.
-# ================================================================================================
-
-def exploring_actions(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Random displacements that never terminate: the bench's workload. (n, 6) float32."""
-    actions = rng.uniform(-1, 1, (n, 6)).astype(np.float32)
-    actions[:, ACTION_MOVES] = -1.0
-    return actions
-
-
-BENCH_STAGES = (("physics", "_drive_gripper"), ("render", "_render"), ("detect", "_detect"),
-                ("integrate", "searcher.observe"), ("encode", "searcher.state"))   # a step's stages, in order
-BENCH_RESETS = 10   # new scenes per measurement of a reset, seeds seed .. seed + 9
-
-
-def bench_stages(task: str, scene: str, steps: int, seed: int = 0) -> dict:
-    """Mean milliseconds per stage of a step over `steps` exploring steps, and of a reset (building the
-    scene, then all of it) over BENCH_RESETS seeds: each stage's method of the env (or its searcher) is
-    wrapped in a timer that counts only in its phase, so a reset's view is not counted as a step's."""
-    env = ObjectFindingEnv(task, scene)
-    env.reset(seed=seed + 1000)     # warm-up: the first reset in a process pays one-time costs
-    stages = [stage for stage, _ in BENCH_STAGES] + ["step", "scene", "reset"]
-    totals, phase = dict.fromkeys(stages, 0.0), [None]
-
-    def timed(stage, method):
-        def run(*args, **kwargs):
-            t0 = time.perf_counter()
-            result = method(*args, **kwargs)
-            if phase[0] == ("reset" if stage == "scene" else "step"):
-                totals[stage] += time.perf_counter() - t0
-            return result
-        return run
-    for stage, name in BENCH_STAGES + (("scene", "_build_scene"),):
-        owner, name = (env.searcher, name.removeprefix("searcher.")) if "." in name else (env, name)
-        setattr(owner, name, timed(stage, getattr(owner, name)))
-
-    def measure(phase_name, stage, call):
-        phase[0], t0 = phase_name, time.perf_counter()
-        result = call()
-        totals[stage], phase[0] = totals[stage] + time.perf_counter() - t0, None
-        return result
-    for i in range(BENCH_RESETS):
-        measure("reset", "reset", lambda: env.reset(seed=seed + i))
-    env.reset(seed=seed)
-    for action in exploring_actions(np.random.default_rng(seed), steps):
-        if measure("step", "step", lambda: env.step(action))[2]:
-            env.reset()
-    env.close()
-    return {stage: 1e3 * total / (BENCH_RESETS if stage in ("scene", "reset") else steps)
-            for stage, total in totals.items()}
-
-
-def bench_throughput(task: str, steps: int, seed: int = 0) -> float:
-    """Env steps per second of one process stepping its own env on task/cubes, resets included."""
-    env = ObjectFindingEnv(task, "cubes", seed=seed)
-    env.reset()
-    t0 = time.perf_counter()
-    for action in exploring_actions(np.random.default_rng(seed), steps):
-        if env.step(action)[2]:
-            env.reset()
-    rate = steps / (time.perf_counter() - t0)
-    env.close()
-    return rate
-
-
-def run_bench(steps: int, workers: int, repeats: int = 3, scenes: tuple = SCENES) -> str:
-    """The report of `python objfind.py bench` as Markdown. Each measurement replays the same seeded work
-    `repeats` times; another load on the machine can only add time, so each column's fastest is reported."""
-    stages = [stage for stage, _ in BENCH_STAGES] + ["step", "scene", "reset"]
-    lines = [f"Milliseconds per stage of a step (mean over {steps} exploring steps) and of a reset (building "
-             f"the scene, then all of it; mean over {BENCH_RESETS} seeds); one process, best of {repeats} runs:",
-             "", "| task / scene | " + " | ".join(stages) + " |", "|---" * (len(stages) + 1) + "|"]
-    throughput = ["", f"Env steps per second on cubes (resets included, best of {repeats} runs, {os.cpu_count()} "
-                  "cores), each process stepping its own env:", "", f"| task | 1 process | {workers} processes |",
-                  "|---|---|---|"]
-    with (tqdm(total=2 * (len(scenes) + 2) * repeats, desc="bench", unit="run", file=sys.stderr) as bar,
-          process_pool(workers) as pool):
-        def best(measure):
-            results = []
-            for _ in range(repeats):
-                results.append(measure())
-                bar.update()
-            return results
-
-        for task in ("ap", "ip"):
-            for scene in scenes:
-                runs = best(lambda: bench_stages(task, scene, steps))
-                lines.append(f"| {task} / {scene} | " + " | ".join(f"{min(r[s] for r in runs):.2f}" for s in stages)
-                             + " |")
-            one = max(best(lambda: bench_throughput(task, steps)))
-            many = max(best(lambda: sum(pool.map(bench_throughput, [task] * workers, [steps] * workers,
-                                                 range(workers)))))
-            throughput.append(f"| {task} | {one:.0f} | {many:.0f} |")
-    return "\n".join(lines + throughput)
-
-
-# ================================================================================================
-# Soak: many random episodes with hostile actions, counting what must never happen.
-# ================================================================================================
-
-SOAK_HOSTILE = (np.nan, np.inf, -np.inf, 1e9, -1e9)   # mixed into random actions; the first three are refused
-SOAK_MALFORMED = (np.zeros(ACTION_SIZE - 1), np.zeros((2, ACTION_SIZE)), "forward", None, [0.0] * 7)   # refused
-SOAK_TERMINATE_PROB = 0.05                             # about 20 steps per soak episode
-SOAK_HOSTILE_PROB = 0.1                                # share of actions with one hostile component ...
-SOAK_MALFORMED_PROB = 0.03                             # ... malformed as a whole, or as a list of Python floats
-SOAK_RESET_PROB = 0.02                                 # a reset in the middle of an episode, with a large seed
-SOAK_COUNTS = dict(episodes=0, steps=0, refused=0, crashes=0, non_finite=0, leaked=0, first_crash="")
-
-
-def hostile_action(rng: np.random.Generator):
-    """A random action, sometimes with a non-finite or huge component, malformed, or a plain list; and
-    whether the env must refuse it (ValueError)."""
-    action = rng.uniform(-1, 1, ACTION_SIZE)
-    action[ACTION_MOVES] = 1.0 if rng.random() < SOAK_TERMINATE_PROB else -1.0
-    if rng.random() < SOAK_HOSTILE_PROB:
-        action[rng.integers(ACTION_SIZE)] = SOAK_HOSTILE[rng.integers(len(SOAK_HOSTILE))]
-    draw = rng.random()
-    if draw < SOAK_MALFORMED_PROB:
-        return SOAK_MALFORMED[rng.integers(len(SOAK_MALFORMED))], True
-    if draw < 2 * SOAK_MALFORMED_PROB:
-        action = action.tolist()
-    return action, not np.all(np.isfinite(action))
-
-
-def soak_chunk(task: str, scene: str, seeds: list) -> dict:
-    """Episodes of hostile actions (`hostile_action`), resets mid-episode and steps after the end, a fresh
-    env each, every other one dropped without close(). Counts crashes (any error but a refusal the env
-    owes), non-finite observations or rewards, and pybullet connections still open once the envs are gone."""
-    counts, clients = dict(SOAK_COUNTS), []
-    for seed in seeds:
-        rng = np.random.default_rng(seed)
-        env = ObjectFindingEnv(task, scene)
-        clients.append(env.sim._client)
-        try:
-            obs, _ = env.reset(seed=seed)
-            counts["non_finite"] += int(not np.all(np.isfinite(obs)))
-            done = False
-            while not done:
-                if rng.random() < SOAK_RESET_PROB:
-                    obs, _ = env.reset(seed=int(rng.integers(MAX_SEED)))
-                    counts["non_finite"] += int(not np.all(np.isfinite(obs)))
-                action, refusable = hostile_action(rng)
-                try:
-                    obs, reward, done, _, _ = env.step(action)
-                except ValueError:
-                    if not refusable:
-                        raise
-                    counts["refused"] += 1
-                    continue
-                counts["steps"] += 1
-                counts["non_finite"] += int(not (np.all(np.isfinite(obs)) and np.isfinite(reward)))
-            try:
-                env.step(np.zeros(ACTION_SIZE))   # after the end: refused, the episode stays over
-                raise AssertionError("a step after the episode ended was accepted")
-            except RuntimeError:
-                counts["refused"] += 1
-            counts["episodes"] += 1
-        except Exception as error:   # noqa: BLE001  counted, not raised: a soak reports every kind of failure
-            counts["crashes"] += 1
-            counts["first_crash"] = counts["first_crash"] or f"{task}/{scene} seed {seed}: {error!r}"[:300]
-        if seed % 2:
-            env.close()
-        del env
-    gc.collect()
-    counts["leaked"] = sum(pb.isConnected(physicsClientId=c) for c in clients)
-    return counts
-
-
-def run_soak(episodes: int, workers: int, seed: int = 0, progress: bool = True) -> dict:
-    """`episodes` soak episodes spread over every task and scene kind; the summed counts."""
-    kinds = [(task, scene) for task in TASKS for scene in SCENES]
-    seeds = list(range(seed, seed + episodes))
-    per_kind = [seeds[j::len(kinds)] for j in range(len(kinds))]          # episode i: kind i mod len(kinds)
-    jobs = [(*kind, part[i:i + EVAL_CHUNK]) for kind, part in zip(kinds, per_kind)
-            for i in range(0, len(part), EVAL_CHUNK)]
-    total = dict(SOAK_COUNTS)
-    with tqdm(total=episodes, desc="soak", unit="ep", disable=not progress, file=sys.stderr) as bar:
-        def add(part):
-            for k, v in part.items():
-                total[k] = (total[k] or v) if k == "first_crash" else total[k] + v
-            bar.update(part["episodes"] + part["crashes"])
-
-        run_jobs(soak_chunk, jobs, workers, add)
-    return total
 
 
 # ================================================================================================
@@ -3963,7 +3384,9 @@ def world_setting_arg(text: str) -> tuple:
     return name, typed
 
 
-INTERACTIVE_AGENTS = ("ges", "i3de")   # without --task these run on ip, the rest on ap
+def default_task(agent: str) -> str:
+    """The task an agent runs on without --task: the interactive agents on ip, the rest on ap."""
+    return "ip" if agent in ("ges", "i3de") else "ap"
 
 
 def information_rule(args) -> dict:
@@ -3980,35 +3403,14 @@ def agent_policy(args) -> dict | None:
 
 
 def cmd_demo(args) -> int:
-    args.task = args.task or ("ip" if args.agent in INTERACTIVE_AGENTS else "ap")
+    args.task = args.task or default_task(args.agent)
     args.scene = args.scene or "cubes"
     policy, out = agent_policy(args), writable_folder(Path(args.out))
-    record = None if args.record is None else Path(args.record)
-    png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, out, policy, record)
+    png, mp4, info = run_demo(args.agent, args.task, args.scene, args.seed, out, policy)
     outcome = "success" if info["success"] else "failure"
     print(f"{args.agent} on {args.task}/{args.scene} seed {args.seed}: {outcome} after {info['steps']} steps "
           f"(target seen {info['target_seen_fraction']:.2f}, explored {info['explored_fraction']:.2f})")
-    print(f"wrote {png} and {mp4}" + (f", and the recording {record}" if record else ""))
-    return 0
-
-
-def cmd_replay(args) -> int:
-    """Check the whole recording, then run it through ArmSearch and write the contact sheet and the CSV."""
-    cfg, rig, meta, frames = read_recording(Path(args.recording), args.depth, args.masks)
-    args.task = meta["task"]
-    policy = agent_policy(args)
-    out = writable_folder(Path(args.out))
-    rows, states, pictures = replay(cfg, rig, meta, frames, args.agent, policy, args.seed)
-    stem = out / f"replay-{Path(args.recording).resolve().name}-{args.agent}"
-    write_contact_sheet(stem.with_suffix(".png"), pictures)
-    write_csv(rows, stem.with_suffix(".csv"))
-    ending = "stopped" if rows[-1]["stop"] else "had not stopped when the frames ended"
-    print(f"{args.agent} on {len(rows)} of {len(frames)} frames of {args.recording}: {ending}")
-    recorded = recorded_actions(Path(args.recording))
-    if recorded:
-        same = sum(np.array_equal([row[n] for n in ACTION_NAMES], a) for row, a in zip(rows, recorded))
-        print(f"actions equal to the recording's own: {same} of {min(len(rows), len(recorded))}")
-    print(f"wrote {stem.with_suffix('.png')} and {stem.with_suffix('.csv')}")
+    print(f"wrote {png} and {mp4}")
     return 0
 
 
@@ -4070,7 +3472,7 @@ def cmd_eval(args) -> int:
         raise UsageError("eval needs --agent or --table")
     if args.from_csv:
         raise UsageError("--from-csv reads the cells of --table; a plain eval runs its episodes")
-    args.task = args.task or ("ip" if args.agent in INTERACTIVE_AGENTS else "ap")
+    args.task = args.task or default_task(args.agent)
     args.scene = args.scene or "cubes"
     policy = agent_policy(args)
     csv_path = Path(args.out) if args.out else None
@@ -4142,35 +3544,6 @@ def cmd_train(args) -> int:
     return 0
 
 
-def cmd_bench(args) -> int:
-    print(run_bench(args.steps, args.workers, args.repeats, SCENES if args.scene == "all" else (args.scene,)))
-    return 0
-
-
-def cmd_soak(args) -> int:
-    t0 = time.perf_counter()
-    counts = run_soak(args.episodes, args.workers, args.seed)
-    print(f"soak: {counts['episodes']} episodes, {counts['steps']} steps over {len(TASKS)} tasks x {len(SCENES)} scene "
-          f"kinds in {time.perf_counter() - t0:.0f} s; {counts['refused']} hostile actions refused; crashes "
-          f"{counts['crashes']}, non-finite observations or rewards {counts['non_finite']}, leaked connections "
-          f"{counts['leaked']}")
-    if counts["first_crash"]:
-        print(f"first crash: {counts['first_crash']}")
-    return 1 if counts["crashes"] or counts["non_finite"] or counts["leaked"] else 0
-
-
-def cmd_sensors(args) -> int:
-    """The sensor study: every point's CSV in --out (finished ones read back), then sensors.md and sensors.png."""
-    out, t0 = writable_folder(Path(args.out)), time.perf_counter()
-    cells = run_sensor_study(out, args.episodes, args.seed, args.workers)
-    markdown = sensor_markdown(cells, args.episodes)
-    replace_atomically(out / "sensors.md", lambda tmp: tmp.write_text(markdown + "\n"))
-    plot_sensor_study(cells, out / "sensors.png")
-    print(markdown)
-    print(f"wrote {out / 'sensors.md'}, {out / 'sensors.png'} and one CSV per point; {time.perf_counter() - t0:.0f} s")
-    return 0
-
-
 def add_agent_args(command, default_agent: str | None) -> None:
     """The flags that pick what runs: agent, task, scene, weights (demo and eval)."""
     command.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default=default_agent,
@@ -4191,22 +3564,7 @@ def build_parser() -> ArgumentParser:
     demo.add_argument("--seed", type=seed_arg, default=0, help="the scene's seed (default 0)")
     demo.add_argument("--out", default="out", help="output folder for demo-TASK-SCENE-AGENT.png and .mp4 "
                       "(default out; its parent must exist)")
-    demo.add_argument("--record", metavar="DIR", help="also write the episode as a recording into the new folder "
-                      "DIR (README: Recordings), to feed `replay`")
     demo.set_defaults(func=cmd_demo)
-    replaying = commands.add_parser("replay", help="a recording (demo --record, or a real rig's) through an agent")
-    replaying.add_argument("recording", help="the recording's folder (recording.json, frames/)")
-    replaying.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default="a3de",
-                           help="the agent that decides at each frame (default a3de)")
-    replaying.add_argument("--weights", help="a learned agent's checkpoint (default: its shipped weights)")
-    replaying.add_argument("--seed", type=seed_arg, help="a baseline's random seed (default: the recording's)")
-    replaying.add_argument("--depth", choices=("exact", "png"),
-                           help="exact: the float depth and detections the simulation gave the searcher; png: "
-                                "the 16-bit millimetre depth and the colour detector (default exact where stored)")
-    replaying.add_argument("--masks", metavar="DIR", help="your detector's masks, DIR/NNNNNN.png per frame "
-                           "(8-bit, the score x 255, the colour image's size): they replace the colour detector")
-    replaying.add_argument("--out", default="out", help="folder for replay-NAME-AGENT.png and .csv (default out)")
-    replaying.set_defaults(func=cmd_replay)
     training = commands.add_parser("train", help="train A3DE (ap) or I3DE (ip) with PPO; resumable")
     training.add_argument("--task", choices=list(TASKS),
                           help="ap trains A3DE, ip trains I3DE (default ap; with --resume, the run's own)")
@@ -4257,34 +3615,12 @@ def build_parser() -> ArgumentParser:
                                  "$RAY_ADDRESS, else of a Ray instance started here (--workers is then unused)")
     evaluation.add_argument("--out", help="CSV of every episode (with --table: a folder, default results)")
     evaluation.set_defaults(func=cmd_eval)
-    bench = commands.add_parser("bench", help="per-stage step time and env steps/s")
-    bench.add_argument("--steps", type=steps_arg, default=300, help="steps per measurement")
-    bench.add_argument("--scene", choices=SCENES + ("all",), default="all", help="scene kind (default all)")
-    bench.add_argument("--workers", type=workers_arg, default=os.cpu_count() or 1,
-                       help="processes for the throughput rows (default all cores)")
-    bench.add_argument("--repeats", type=whole_number_arg(1, 100, "repeats"), default=3,
-                       help="report the best of this many runs")
-    bench.set_defaults(func=cmd_bench)
-    sensors = commands.add_parser("sensors", help="A3DE and I3DE as depth noise, missing returns and hand-eye "
-                                  "error grow (Sec. III-D), GNBV and GES at the rig's errors; a table and a figure")
-    sensors.add_argument("--episodes", type=episodes_arg, default=200, help="paired episodes per point (default 200)")
-    sensors.add_argument("--workers", type=workers_arg, default=os.cpu_count() or 1, help="worker processes")
-    sensors.add_argument("--seed", type=seed_arg, default=0, help="episode i uses scene seed + i at every point")
-    sensors.add_argument("--out", default="results/sensors", help="folder for the CSVs, sensors.md and sensors.png "
-                         "(default results/sensors; a point whose CSV is there is read back)")
-    sensors.set_defaults(func=cmd_sensors)
-    soak = commands.add_parser("soak", help="random episodes with hostile actions (NaN, infinite, huge, malformed), "
-                                            "resets mid-episode and steps after the end, on every task and scene "
-                                            "kind; counts crashes, non-finite observations and leaked connections")
-    soak.add_argument("--episodes", type=episodes_arg, default=2000, help="episodes in all (default 2000)")
-    soak.add_argument("--workers", type=workers_arg, default=os.cpu_count() or 1, help="worker processes")
-    soak.add_argument("--seed", type=seed_arg, default=0, help="episode i uses seed + i (default 0)")
-    soak.set_defaults(func=cmd_soak)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def run_cli(parser: ArgumentParser, argv: list[str] | None = None) -> int:
+    """Parse and run a command (objfind's or a tool's): bad input is one line and exit 2, Ctrl-C or SIGTERM
+    exit 130 keeping what finished, and the output folders' locks are released."""
     args = parser.parse_args(argv)
     if getattr(args, "episodes", None) and args.seed + args.episodes - 1 > MAX_SEED:
         parser.error(f"--seed {args.seed} with --episodes {args.episodes} goes past the largest seed, {MAX_SEED}")
@@ -4296,7 +3632,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"objfind: error: {error}\n")
         return 2
     except KeyboardInterrupt:
-        table = args.command == "eval" and args.table
+        table = getattr(args, "table", False)
         sys.stderr.write(f"objfind: interrupted{' (each finished cell is kept: the same command goes on)' * table}\n")
         return 130
     except BrokenPipeError:   # the reader went away (| head): results are already written; say nothing more
@@ -4304,6 +3640,10 @@ def main(argv: list[str] | None = None) -> int:
         return 141
     finally:
         release_locks()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_cli(build_parser(), argv)
 
 
 if __name__ == "__main__":

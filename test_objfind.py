@@ -2,6 +2,7 @@
 import dataclasses
 import functools
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +14,8 @@ import pytest
 import torch
 
 import objfind as of
+from tools import bench, sensors, soak
+from tools import replay as replay_tool
 
 torch = of.torch   # imported by objfind after it limits BLAS threads
 
@@ -651,7 +654,7 @@ def run_cli(*args):
 
 @pytest.mark.parametrize("args", [["demo", "--task", "nope"], ["demo", "--scene", "boxes"],
                                   ["demo", "--seed", "-1"], ["demo", "--out", "/no/such/parent/demo"],
-                                  ["bench", "--steps", "-5"], ["bench", "--workers", "two"], ["fly"], [],
+                                  ["fly"], [],
                                   ["train", "--set", "entropy=0.1"], ["train", "--set", "epochs=ten"]])
 def test_cli_bad_input_is_one_line_and_exit_two(args):
     result = run_cli(*args)
@@ -708,7 +711,7 @@ def test_constructor_seed_makes_the_first_reset_reproducible():
 
 @pytest.mark.parametrize("scene", ["cubes", "object-models"])
 def test_bench_stages_account_for_the_step_and_the_reset(scene):
-    means = of.bench_stages("ap", scene, 20)
+    means = bench.bench_stages("ap", scene, 20)
     stages = ("physics", "render", "detect", "integrate", "encode")
     assert all(means[s] >= 0 for s in stages) and means["render"] > 0 and means["integrate"] > 0
     assert sum(means[s] for s in stages) <= means["step"] * 1.02      # the stages are parts of the step
@@ -1430,7 +1433,7 @@ def test_the_success_interval_never_prints_minus_zero(capsys):
 
 
 def test_a_short_soak_finds_no_crash_no_nan_and_no_leak():
-    counts = of.run_soak(episodes=10, workers=1, progress=False)
+    counts = soak.run_soak(episodes=10, workers=1, progress=False)
     assert counts["episodes"] == 10 and counts["refused"] > 0
     assert counts["crashes"] == 0 and counts["non_finite"] == 0 and counts["leaked"] == 0, counts["first_crash"]
 
@@ -1993,10 +1996,10 @@ RECORDED_SEED = 1   # the shipped I3DE pushes for 30 steps on this ip/cubes scen
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
-    """An I3DE episode recorded by `demo --record`, and the env's own states and actions of it."""
+    """An I3DE episode recorded by `tools/replay.py record`, and the env's own states and actions of it."""
     folder = tmp_path_factory.mktemp("recording") / "episode"
     policy = of.learned_policy("i3de", "ip")
-    of.run_demo("i3de", "ip", "cubes", RECORDED_SEED, folder.parent / "demo", policy, record=folder)
+    replay_tool.record("i3de", "ip", "cubes", RECORDED_SEED, policy, folder)
     env = of.ObjectFindingEnv("ip", "cubes")
     agent = of.make_agent("i3de", env.cfg, RECORDED_SEED, policy)
     state, _ = env.reset(seed=RECORDED_SEED)
@@ -2012,9 +2015,9 @@ def recording(tmp_path_factory):
 def test_a_recorded_episode_replays_to_the_env_states_and_actions_exactly(recording):
     folder, states, actions, info = recording
     assert info["terminated_by_agent"] and len(actions) > 5
-    cfg, rig, meta, frames = of.read_recording(folder)
+    cfg, rig, meta, frames = replay_tool.read_recording(folder)
     assert len(frames) == len(actions) and rig.rgb is rig.depth
-    rows, replayed, _ = of.replay(cfg, rig, meta, frames, "i3de", of.learned_policy("i3de", "ip"))
+    rows, replayed, _ = replay_tool.replay(cfg, rig, meta, frames, "i3de", of.learned_policy("i3de", "ip"))
     assert len(rows) == len(actions) and rows[-1]["stop"] and not any(row["stop"] for row in rows[:-1])
     for row, action in zip(rows, actions):
         assert np.array_equal([row[name] for name in of.ACTION_NAMES], action)
@@ -2028,7 +2031,7 @@ def test_a_recorded_episode_replays_to_the_env_states_and_actions_exactly(record
 
 def test_millimetre_png_depth_replays_to_the_end(recording, tmp_path, capsys):
     folder = recording[0]
-    assert of.main(["replay", str(folder), "--agent", "i3de", "--depth", "png", "--out", str(tmp_path)]) == 0
+    assert replay_tool.main(["play", str(folder), "--agent", "i3de", "--depth", "png", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "actions equal to the recording's own" in out
     rows = list(of.csv.DictReader(open(tmp_path / f"replay-{folder.name}-i3de.csv")))
@@ -2040,7 +2043,7 @@ def test_millimetre_png_depth_replays_to_the_end(recording, tmp_path, capsys):
 
 def broken_copy(folder: Path, tmp_path: Path, name: str) -> Path:
     copy = tmp_path / name
-    of.shutil.copytree(folder, copy)
+    shutil.copytree(folder, copy)
     return copy
 
 
@@ -2060,7 +2063,7 @@ def test_a_broken_recording_is_one_line_exit_two_and_writes_nothing(recording, t
     expected = {"missing": "frame 3", "small": "depth image", "pose": "unreadable", "intrinsics": "depth image"}
     for name, words in expected.items():
         out = tmp_path / f"out-{name}"
-        assert of.main(["replay", str(tmp_path / name), "--depth", "png", "--out", str(out)]) == 2, name
+        assert replay_tool.main(["play", str(tmp_path / name), "--depth", "png", "--out", str(out)]) == 2, name
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], (name, err)
         assert not out.exists(), name   # refused before any output
@@ -2068,29 +2071,29 @@ def test_a_broken_recording_is_one_line_exit_two_and_writes_nothing(recording, t
 
 def test_detection_masks_replace_the_colour_detector(recording, tmp_path):
     folder = recording[0]
-    cfg, rig, meta, frames = of.read_recording(folder, "png")
-    _, states, _ = of.replay(cfg, rig, meta, frames, "i3de", of.learned_policy("i3de", "ip"))
+    cfg, rig, meta, frames = replay_tool.read_recording(folder, "png")
+    _, states, _ = replay_tool.replay(cfg, rig, meta, frames, "i3de", of.learned_policy("i3de", "ip"))
     assert max(s[of.STATE_DETECTION_SUM] for s in states) > 0   # the colour detector sees the target
     masks = tmp_path / "masks"
     masks.mkdir()
     for i, frame in enumerate(frames):
         cv2.imwrite(str(masks / f"{i:06d}.png"), np.zeros(frame["rgb"].shape[:2], np.uint8))
-    cfg, rig, meta, frames = of.read_recording(folder, "png", masks)
-    _, states, _ = of.replay(cfg, rig, meta, frames, "i3de", of.learned_policy("i3de", "ip"))
+    cfg, rig, meta, frames = replay_tool.read_recording(folder, "png", masks)
+    _, states, _ = replay_tool.replay(cfg, rig, meta, frames, "i3de", of.learned_policy("i3de", "ip"))
     assert all(s[of.STATE_DETECTION_SUM] == 0 for s in states)   # a detector that sees nothing
 
 
 def test_the_arm_loop_works_in_any_base_frame(recording):
     """The same frames, with the workspace moved and turned in the robot's base frame: the same actions,
     and goal poses moved the same way."""
-    cfg, rig, meta, frames = of.read_recording(recording[0])
-    rows, _, _ = of.replay(cfg, rig, meta, frames[:6], "i3de", of.learned_policy("i3de", "ip"))
+    cfg, rig, meta, frames = replay_tool.read_recording(recording[0])
+    rows, _, _ = replay_tool.replay(cfg, rig, meta, frames[:6], "i3de", of.learned_policy("i3de", "ip"))
     T_base_workspace = np.eye(4)
     T_base_workspace[:3, :3] = of.rotation(0.7, "z")
     T_base_workspace[:3, 3] = [0.4, -0.2, 0.05]
     moved = [dict(f, T_base_tool=T_base_workspace @ f["T_base_tool"], T_base_depth=T_base_workspace @ f["T_base_depth"])
              for f in frames[:6]]
-    rows_moved, _, _ = of.replay(cfg, rig, dict(meta, T_base_workspace=T_base_workspace), moved, "i3de",
+    rows_moved, _, _ = replay_tool.replay(cfg, rig, dict(meta, T_base_workspace=T_base_workspace), moved, "i3de",
                                  of.learned_policy("i3de", "ip"))
     for a, b in zip(rows, rows_moved):
         assert np.allclose([a[n] for n in of.ACTION_NAMES], [b[n] for n in of.ACTION_NAMES], atol=1e-4)
@@ -2444,19 +2447,19 @@ def test_the_median_filter_keeps_a_noisy_cameras_perceived_share_from_swelling()
 
 
 def test_the_sensor_study_writes_every_point_and_reads_finished_ones_back(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(of, "SENSOR_SWEEPS", of.SENSOR_SWEEPS[:1])    # one sweep, the active agents: the
-    monkeypatch.setattr(of, "SENSOR_AGENTS", of.SENSOR_AGENTS[:1])    # machinery, not the figures
-    monkeypatch.setattr(of, "SENSOR_BASELINES", of.SENSOR_BASELINES[:1])
+    monkeypatch.setattr(sensors, "SENSOR_SWEEPS", sensors.SENSOR_SWEEPS[:1])    # one sweep, the active agents:
+    monkeypatch.setattr(sensors, "SENSOR_AGENTS", sensors.SENSOR_AGENTS[:1])    # the machinery, not the figures
+    monkeypatch.setattr(sensors, "SENSOR_BASELINES", sensors.SENSOR_BASELINES[:1])
     out = tmp_path / "sensors"
-    assert of.main(["sensors", "--episodes", "1", "--workers", "1", "--out", str(out)]) == 0
-    points = len(of.sensor_points())
-    assert len(list(out.glob("*.csv"))) == points * len(of.SENSOR_AGENTS) + 2 * len(of.SENSOR_BASELINES)
+    assert sensors.main(["--episodes", "1", "--workers", "1", "--out", str(out)]) == 0
+    points = len(sensors.sensor_points())
+    assert len(list(out.glob("*.csv"))) == points * len(sensors.SENSOR_AGENTS) + 2 * len(sensors.SENSOR_BASELINES)
     table = (out / "sensors.md").read_text().splitlines()
     assert len([line for line in table if line.startswith("| ")]) == 1 + points   # the header and a row per point
     assert cv2.imread(str(out / "sensors.png")) is not None
-    monkeypatch.setattr(of, "evaluate", lambda *a, **k: pytest.fail("a finished point was run again"))
+    monkeypatch.setattr(sensors, "evaluate", lambda *a, **k: pytest.fail("a finished point was run again"))
     capsys.readouterr()
-    assert of.main(["sensors", "--episodes", "1", "--workers", "1", "--out", str(out)]) == 0
+    assert sensors.main(["--episodes", "1", "--workers", "1", "--out", str(out)]) == 0
     assert capsys.readouterr().out.splitlines()[:len(table)] == table
 
 
@@ -2519,3 +2522,33 @@ def test_a_killed_ray_worker_ends_the_command_with_one_line(local_ray, command, 
     killer.join()
     said = [line for line in capsys.readouterr().err.replace("\r", "\n").splitlines() if line.startswith("objfind:")]
     assert code == 2 and len(said) == 1 and "worker process died" in said[0], said
+
+
+# --- tools/: each a script that imports objfind ------------------------------------------------------
+
+@pytest.mark.parametrize("tool", ["replay.py", "sensors.py", "bench.py", "soak.py"])
+def test_each_tool_runs_as_a_script_with_help(tool):
+    done = subprocess.run([sys.executable, str(HERE / "tools" / tool), "--help"], capture_output=True, text=True,
+                          timeout=300, cwd="/")
+    assert done.returncode == 0 and done.stdout.startswith(f"usage: tools/{tool}"), done.stderr[-500:]
+
+
+@pytest.mark.parametrize("tool, args", [
+    (replay_tool, ["play"]), (replay_tool, ["record", "x", "--seed", "-1"]), (replay_tool, ["fly"]),
+    (sensors, ["--episodes", "0"]), (bench, ["--steps", "-5"]), (bench, ["--workers", "two"]),
+    (soak, ["--episodes", "many"]), (soak, ["--seed", "4294967295", "--episodes", "2"])])
+def test_a_bad_argument_to_a_tool_is_one_line_and_exit_two(tool, args, capsys):
+    with pytest.raises(SystemExit) as stop:
+        tool.main(args)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert stop.value.code == 2 and len(err) == 1 and err[0].startswith("objfind: error:"), err
+
+
+def test_a_recording_into_a_folder_in_use_is_refused_before_the_episode(tmp_path, capsys, monkeypatch):
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "notes.txt").write_text("an earlier recording")
+    monkeypatch.setattr(replay_tool, "ObjectFindingEnv", lambda *a, **k: pytest.fail("an episode ran"))
+    for folder in (tmp_path / "used", tmp_path / "no" / "parent"):
+        assert replay_tool.main(["record", str(folder), "--agent", "random"]) == 2
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert (tmp_path / "used" / "notes.txt").read_text() == "an earlier recording"
