@@ -81,42 +81,6 @@ finally:
     os.close(_saved_stderr), os.close(_devnull)
 
 
-class UsageError(Exception):
-    """Bad input (an unknown agent, a missing or foreign checkpoint): one line, exit status 2."""
-
-
-def at_least(low, high=np.inf):
-    """A field's range [low, high] as (test, meaning), for a settings class's `limits`."""
-    return lambda v: low <= v <= high, f"at least {low}" if high == np.inf else f"in [{low}, {high}]"
-
-
-def above(low, high=np.inf):
-    """A field's range (low, high] as (test, meaning)."""
-    return lambda v: low < v <= high, f"above {low}" if high == np.inf else f"in ({low}, {high}]"
-
-
-def field_kind(field: dataclasses.Field) -> str:
-    """A settings field's type by name ("int", "float", "bool", "tuple", ...), as check_fields and the command
-    line's --world parse it: with `from __future__ import annotations` a field's type is a string."""
-    return field.type if isinstance(field.type, str) else field.type.__name__
-
-
-def check_fields(settings) -> None:
-    """A settings dataclass checked where it is made, so a new field is one line: its type (a whole number,
-    a truth value, numbers in a tuple), every number finite, and the field's range in `limits` if any."""
-    for field in dataclasses.fields(settings):
-        value = getattr(settings, field.name)
-        ok, meaning = settings.limits.get(field.name, settings.default_limit)
-        kind = field_kind(field)
-        values = value if kind == "tuple" and isinstance(value, tuple) else (value,)
-        number = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
-        if kind == "bool" and not isinstance(value, bool):
-            raise ValueError(f"{field.name}={value!r}: it must be True or False")
-        if kind == "int" and not (isinstance(value, int) and not isinstance(value, bool)):
-            raise ValueError(f"{field.name}={value!r}: it must be a whole number")
-        if kind != "bool" and not (number and np.all(np.isfinite(values)) and ok(value)):
-            raise ValueError(f"{field.name}={value!r}: it must be {meaning}")
-
 # ================================================================================================
 # Settings: Table I presets and the constants of Sec. IV-A. Lengths in metres, angles in radians.
 # Every number of the world and of learning lives here, or in a named constant beside the code using it.
@@ -277,67 +241,6 @@ class Settings:
 
     scaled_sensor_errors: ClassVar[tuple] = ("tof_noise_ratio", "tof_missing_share", "hand_eye_error_m",
                                              "hand_eye_error_rad")   # what sensor_error_scale multiplies
-    default_limit: ClassVar[tuple] = (lambda v: min(np.atleast_1d(v)) >= 0, "at least 0")
-    limits: ClassVar[dict] = {   # ranges beyond "at least 0"; upper bounds keep memory and time finite
-        "min_objects": at_least(1), "max_objects": at_least(1, 500), "num_piles": at_least(0, 10),
-        "no_target_prob": at_least(0, 1), "exploration_ratio": at_least(0, 1), "workspace_m": above(0, 10),
-        "horizon": at_least(1, 100_000), "trunc_m": above(0), "voxels_per_side": at_least(8, 400),
-        "max_weight": above(0), "crop_m": above(0), "max_step_m": above(0), "max_turn_rad": above(0),
-        "noise_rate": above(0), "false_positive_share": at_least(0, 1), "gnbv_samples": at_least(1, 1000),
-        "gnbv_explored_to_stop": above(0, 1), "seen_threshold": above(0, 1),
-        "objects_per_pile_dense": (lambda v: len(v) == 2 and 1 <= v[0] <= v[1], "(low, high), 1 <= low <= high"),
-        "object_size_m": above(0), "object_mass_kg": above(0), "gripper_mass_kg": above(0),
-        "variable_scale": (lambda v: len(v) == 2 and 0 < v[0] <= v[1], "(low, high), 0 < low <= high"),
-        "image_width": at_least(8, 1024), "image_height": at_least(8, 1024), "fov_y_deg": above(0, 170),
-        "depth_width": at_least(0, 1024), "depth_height": at_least(0, 1024), "depth_fov_y_deg": at_least(0, 170),
-        "rgb_offset_m": (lambda v: len(v) == 3 and max(map(abs, v)) <= 0.2, "(x, y, z), each within 0.2 m"),
-        "tof_noise_ratio": at_least(0, 0.2), "tof_missing_share": at_least(0, 1), "tof_edge_drop_share": at_least(0, 1),
-        "hand_eye_error_m": at_least(0, 0.05), "hand_eye_error_rad": at_least(0, 0.2),
-        "rig_camera_share": at_least(0, 1),
-        "sensor_error_scale": (lambda v: len(v) == 2 and 0 <= v[0] <= v[1] <= 4, "(low, high), 0 <= low <= high <= 4"),
-        "near_m": above(0), "gripper_force_n": above(0), "gripper_erp": above(0, 1), "max_roll_rad": at_least(0, 1.5),
-        "ceiling_ratio": above(0),
-        "gripper_start_tries": at_least(1), "reach_tol_m": above(0), "reach_tol_rad": above(0), "stall_m": above(0),
-        "physics_hz": at_least(1), "settle_hz": at_least(1), "solver_iterations": at_least(1),
-        "move_limit_s": above(0, 60), "settle_s": at_least(0, 60), "settle_scatter_s": at_least(0, 60), "settle_pile_s": at_least(0, 60),
-        "settle_speed": above(0), "wall_height_m": above(0), "wall_thickness_m": above(0),
-        "scatter_tries": at_least(1), "pile_layers": at_least(1, 20), "pile_spacing_ratio": above(0),
-        "pile_overlap_chance": at_least(0, 1), "exploration_normaliser": above(0),
-        "surface_points": at_least(1, 100_000), "seen_min_cos": at_least(0, 0.99), "detection_threshold": above(0, 1),
-        "outline_pixel_share": at_least(0, 1), "area_median_px": (lambda v: v in (0, 3, 5), "0, 3 or 5"),
-        "gnbv_rays": (lambda v: len(v) == 2 and min(v) >= 1, "(columns, rows)"),
-        "gnbv_min_detections": at_least(1), "gnbv_stall_steps": at_least(1), "ges_tries_per_node": at_least(1),
-    }
-
-    def __post_init__(self):
-        """Each field in its range, then the combinations a scene could not be built from (one line each)."""
-        check_fields(self)
-        half = self.workspace_m / 2
-        largest_m = self.object_size_m * self.variable_scale[1]
-        for name, broken, must in (
-                ("min_objects", self.min_objects > self.max_objects, f"at most max_objects ({self.max_objects})"),
-                ("num_piles", self.num_piles > self.min_objects, f"at most min_objects ({self.min_objects})"),
-                ("pile_overlap_chance", self.num_piles > 1 and self.pile_overlap_chance == 0,
-                 "above 0 with several piles (pile centres are drawn until they fit)"),
-                ("pile_margin_ratio", self.num_piles and self.pile_margin_ratio >= 0.5, "under 0.5 (of workspace_m)"),
-                ("object_size_m", largest_m > self.workspace_m / 3, "(at the largest variable_scale) at most a "
-                 f"third of workspace_m ({self.workspace_m})"),
-                ("gripper_start_margin_m", self.gripper_start_margin_m >= half, f"under half of workspace_m ({half})"),
-                ("gripper_start_min_z_m", self.gripper_start_min_z_m > self.ceiling_m,
-                 f"at most the ceiling (ceiling_ratio x workspace_m = {self.ceiling_m:g})"),
-                ("near_m", self.near_m >= self.far_m, f"under the far plane (2 x workspace_m = {self.far_m:g})"),
-                ("trunc_m", self.trunc_m >= self.volume_height_m,
-                 f"under the volume's height ({self.volume_height_m:g})"),
-                ("depth_width", self.depth_width and not (self.depth_height and self.depth_fov_y_deg),
-                 "0, or given with depth_height and depth_fov_y_deg (a separate depth camera)"),
-                ("depth_min_range_m", self.depth_min_range_m >= self.far_m,
-                 f"under the far plane (2 x workspace_m = {self.far_m:g})"),
-                ("sensor_error_scale", not all(self.limits[name][0](getattr(self, name) * self.sensor_error_scale[1])
-                                               for name in self.scaled_sensor_errors),
-                 f"small enough that its high end keeps every one of {', '.join(self.scaled_sensor_errors)} in range")):
-            if broken:
-                raise ValueError(f"{name}={getattr(self, name)!r}: it must be {must}")
-
 
 
 # The paper's wrist rig (Sec. IV): a CamBoard pico flexx time-of-flight camera beside a Chameleon 3 RGB
@@ -391,33 +294,6 @@ class PPOSettings:
     adam_eps: float = 1e-5             # Adam's epsilon, as in OpenAI Baselines' PPO2
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
-
-    default_limit: ClassVar[tuple] = (lambda v: True, "finite")
-    limits: ClassVar[dict] = {   # a range for some fields, as (test, meaning); every field must be finite
-        "hidden": at_least(1, 1024), "batch_steps": at_least(1, 1_000_000), "epochs": at_least(1, 1000),
-        "minibatch": (lambda v: v >= 1, "at least 1"), "gamma": (lambda v: 0 < v <= 1, "in (0, 1]"),
-        "entropy_coef": (lambda v: v >= 0, "at least 0"), "gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),
-        "clip": (lambda v: v > 0, "above 0"),
-        "learning_rate": (lambda v: v > 0, "above 0"), "value_coef": (lambda v: v >= 0, "at least 0"),
-        "max_grad_norm": (lambda v: v > 0, "above 0"), "reward_scale": (lambda v: v > 0, "above 0"),
-        "init_terminate_prob": (lambda v: 0 < v < 1, "in (0, 1)"), "adam_eps": (lambda v: v > 0, "above 0"),
-        "obs_clip": (lambda v: v > 0, "above 0"), "checkpoint_every": (lambda v: v >= 1, "at least 1"),
-    }
-
-    def __post_init__(self):
-        check_fields(self)
-
-
-def ppo_settings(values: dict) -> PPOSettings:
-    """PPOSettings from NAME: VALUE pairs (a checkpoint's, or --set), or a one-line UsageError."""
-    names = [field.name for field in dataclasses.fields(PPOSettings)]
-    unknown = sorted(set(values) - set(names))
-    if unknown:
-        raise UsageError(f"unknown PPO setting {unknown[0]!r}; the settings are {', '.join(names)}")
-    try:
-        return PPOSettings(**values)
-    except ValueError as error:
-        raise UsageError(f"PPO setting {error}") from None
 
 
 # ================================================================================================
@@ -685,7 +561,8 @@ class TSDFVolume:
 # ================================================================================================
 
 BINS = 17                      # pooled cells per map (Fig. 2)
-MAPS = 4                       # TSDF above / below the fingertips, detections above / below
+MAP_NAMES = ("TSDF above", "TSDF below", "detections above", "detections below")   # of the fingertips
+MAPS = len(MAP_NAMES)
 STATE_TSDF_SUM, STATE_DETECTION_SUM, STATE_ROLL = MAPS * BINS, MAPS * BINS + 1, MAPS * BINS + 2
 STATE_SIZE = MAPS * BINS + 3   # 71: the maps, the two sums, the roll
 
@@ -1257,7 +1134,7 @@ class PPOAgent:
     """A trained policy as an agent for eval and demo: the Gaussian's mean, terminate when p > 0.5."""
 
     def __init__(self, checkpoint: dict):
-        self.model = ActorCritic(checkpoint["obs_dim"], ppo_settings(checkpoint["settings"]))
+        self.model = ActorCritic(checkpoint["obs_dim"], PPOSettings(**checkpoint["settings"]))
         self.model.load_state_dict(checkpoint["model"])
         self.model.eval()
 
@@ -2011,10 +1888,7 @@ class ObjectFindingEnv(gym.Env):
             if value not in known:
                 raise ValueError(f"unknown {name} {value!r}; choose from {', '.join(map(str, known))}")
         self.task, self.scene, self.render_mode = task, scene, render_mode
-        try:   # e.g. target_size_known=False: any Settings field, for ablations
-            self.cfg = dataclasses.replace(TASKS[task], **overrides)
-        except TypeError:
-            raise ValueError(f"unknown Settings field among {', '.join(overrides)}") from None
+        self.cfg = checked_settings(task, overrides)   # e.g. target_size_known=False, for ablations
         self._seed = seed
         self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (STATE_SIZE,), np.float32)
@@ -2407,6 +2281,127 @@ def ppo_iteration(model: ActorCritic, optimizer, ppo: PPOSettings, collect, seed
 # The paper's system ends here. What follows is the harness: files, training runs, evaluation and
 # Table II, the demo, bench, soak and the command line.
 # ================================================================================================
+
+# ================================================================================================
+# Input: what a user or a file hands the system (settings, checkpoints) is checked here, once.
+# ================================================================================================
+
+class UsageError(Exception):
+    """Bad input (an unknown agent, a missing or foreign checkpoint): one line, exit status 2."""
+
+
+# Each field's range as an interval (brackets closed, parentheses open); a Settings field not named is at
+# least 0, a PPOSettings field only finite. Upper bounds keep memory and time finite.
+SETTINGS_RANGES = {
+    "min_objects": "[1, inf)", "max_objects": "[1, 500]", "num_piles": "[0, 10]", "no_target_prob": "[0, 1]",
+    "exploration_ratio": "[0, 1]", "workspace_m": "(0, 10]", "horizon": "[1, 100000]", "trunc_m": "(0, inf)",
+    "voxels_per_side": "[8, 400]", "max_weight": "(0, inf)", "crop_m": "(0, inf)", "max_step_m": "(0, inf)",
+    "max_turn_rad": "(0, inf)", "noise_rate": "(0, inf)", "false_positive_share": "[0, 1]",
+    "gnbv_samples": "[1, 1000]", "gnbv_explored_to_stop": "(0, 1]", "seen_threshold": "(0, 1]",
+    "objects_per_pile_dense": "[1, inf)", "object_size_m": "(0, inf)", "object_mass_kg": "(0, inf)",
+    "gripper_mass_kg": "(0, inf)", "variable_scale": "(0, inf)", "image_width": "[8, 1024]",
+    "image_height": "[8, 1024]", "fov_y_deg": "(0, 170]", "depth_width": "[0, 1024]", "depth_height": "[0, 1024]",
+    "depth_fov_y_deg": "[0, 170]", "rgb_offset_m": "[-0.2, 0.2]", "tof_noise_ratio": "[0, 0.2]",
+    "tof_missing_share": "[0, 1]", "tof_edge_drop_share": "[0, 1]", "hand_eye_error_m": "[0, 0.05]",
+    "hand_eye_error_rad": "[0, 0.2]", "rig_camera_share": "[0, 1]", "sensor_error_scale": "[0, 4]",
+    "near_m": "(0, inf)", "gripper_force_n": "(0, inf)", "gripper_erp": "(0, 1]", "max_roll_rad": "[0, 1.5]",
+    "ceiling_ratio": "(0, inf)", "gripper_start_tries": "[1, inf)", "reach_tol_m": "(0, inf)",
+    "reach_tol_rad": "(0, inf)", "stall_m": "(0, inf)", "physics_hz": "[1, inf)", "settle_hz": "[1, inf)",
+    "solver_iterations": "[1, inf)", "move_limit_s": "(0, 60]", "settle_s": "[0, 60]",
+    "settle_scatter_s": "[0, 60]", "settle_pile_s": "[0, 60]", "settle_speed": "(0, inf)",
+    "wall_height_m": "(0, inf)", "wall_thickness_m": "(0, inf)", "scatter_tries": "[1, inf)",
+    "pile_layers": "[1, 20]", "pile_spacing_ratio": "(0, inf)", "pile_overlap_chance": "[0, 1]",
+    "exploration_normaliser": "(0, inf)", "surface_points": "[1, 100000]", "seen_min_cos": "[0, 0.99]",
+    "detection_threshold": "(0, 1]", "outline_pixel_share": "[0, 1]", "gnbv_rays": "[1, inf)",
+    "gnbv_min_detections": "[1, inf)", "gnbv_stall_steps": "[1, inf)", "ges_tries_per_node": "[1, inf)"}
+PPO_RANGES = {
+    "hidden": "[1, 1024]", "batch_steps": "[1, 1000000]", "epochs": "[1, 1000]", "minibatch": "[1, inf)",
+    "gamma": "(0, 1]", "entropy_coef": "[0, inf)", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
+    "learning_rate": "(0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "reward_scale": "(0, inf)",
+    "init_terminate_prob": "(0, 1)", "adam_eps": "(0, inf)", "obs_clip": "(0, inf)", "checkpoint_every": "[1, inf)"}
+
+
+def in_interval(value: float, interval: str) -> bool:
+    """Whether a number lies in an interval written "[0, 1)": a bracket includes its end, a parenthesis not."""
+    low, high = (float(end) for end in interval[1:-1].split(","))
+    return (low <= value if interval[0] == "[" else low < value) and (value <= high if interval[-1] == "]"
+                                                                      else value < high)
+
+
+def field_kind(field: dataclasses.Field) -> str:
+    """A settings field's type by name ("int", "float", "bool", "tuple"; a string under `annotations`)."""
+    return field.type if isinstance(field.type, str) else field.type.__name__
+
+
+def check_fields(settings, ranges: dict, default: str) -> None:
+    """Every field of a settings dataclass of its type (a whole number, a truth value, a tuple of the default's
+    length), every number finite and in its range: a ValueError "NAME=VALUE: it must be ..." otherwise."""
+    for field in dataclasses.fields(settings):
+        value, kind, interval = getattr(settings, field.name), field_kind(field), ranges.get(field.name, default)
+        values = value if kind == "tuple" and isinstance(value, tuple) else (value,)
+        number = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+        must = (("True or False" if not isinstance(value, bool) else "") if kind == "bool" else
+                "a whole number" if kind == "int" and not (isinstance(value, int) and not isinstance(value, bool))
+                else f"{len(field.default)} numbers" if kind == "tuple" and len(values) != len(field.default) else
+                f"in {interval}" if not (number and np.all(np.isfinite(values))
+                                         and all(in_interval(v, interval) for v in values)) else "")
+        if must:
+            raise ValueError(f"{field.name}={value!r}: it must be {must}")
+
+
+def checked_settings(task: str, overrides: dict | None = None) -> Settings:
+    """A task's preset with Settings overrides, every field in its range and nothing a scene could not be built
+    from; a ValueError naming the first field that is not."""
+    unknown = sorted(set(overrides or {}) - {field.name for field in dataclasses.fields(Settings)})
+    if unknown:
+        raise ValueError(f"{unknown[0]} is not a Settings field")
+    cfg = dataclasses.replace(TASKS[task], **(overrides or {}))
+    check_fields(cfg, SETTINGS_RANGES, "[0, inf)")
+    half, largest_m = cfg.workspace_m / 2, cfg.object_size_m * cfg.variable_scale[1]
+    scaled = [getattr(cfg, name) * cfg.sensor_error_scale[1] for name in Settings.scaled_sensor_errors]
+    for name, broken, must in (
+            ("min_objects", cfg.min_objects > cfg.max_objects, f"at most max_objects ({cfg.max_objects})"),
+            ("num_piles", cfg.num_piles > cfg.min_objects, f"at most min_objects ({cfg.min_objects})"),
+            ("objects_per_pile_dense", cfg.objects_per_pile_dense[0] > cfg.objects_per_pile_dense[1], "(low, high)"),
+            ("variable_scale", cfg.variable_scale[0] > cfg.variable_scale[1], "(low, high)"),
+            ("sensor_error_scale", cfg.sensor_error_scale[0] > cfg.sensor_error_scale[1], "(low, high)"),
+            ("area_median_px", cfg.area_median_px not in (0, 3, 5), "0, 3 or 5"),
+            ("pile_overlap_chance", cfg.num_piles > 1 and cfg.pile_overlap_chance == 0,
+             "above 0 with several piles (pile centres are drawn until they fit)"),
+            ("pile_margin_ratio", cfg.num_piles and cfg.pile_margin_ratio >= 0.5, "under 0.5 (of workspace_m)"),
+            ("object_size_m", largest_m > cfg.workspace_m / 3, "(at the largest variable_scale) at most a "
+             f"third of workspace_m ({cfg.workspace_m})"),
+            ("gripper_start_margin_m", cfg.gripper_start_margin_m >= half, f"under half of workspace_m ({half})"),
+            ("gripper_start_min_z_m", cfg.gripper_start_min_z_m > cfg.ceiling_m,
+             f"at most the ceiling (ceiling_ratio x workspace_m = {cfg.ceiling_m:g})"),
+            ("near_m", cfg.near_m >= cfg.far_m, f"under the far plane (2 x workspace_m = {cfg.far_m:g})"),
+            ("trunc_m", cfg.trunc_m >= cfg.volume_height_m, f"under the volume's height ({cfg.volume_height_m:g})"),
+            ("depth_width", cfg.depth_width and not (cfg.depth_height and cfg.depth_fov_y_deg),
+             "0, or given with depth_height and depth_fov_y_deg (a separate depth camera)"),
+            ("depth_min_range_m", cfg.depth_min_range_m >= cfg.far_m,
+             f"under the far plane (2 x workspace_m = {cfg.far_m:g})"),
+            ("sensor_error_scale", not all(in_interval(v, SETTINGS_RANGES[name]) for v, name
+                                           in zip(scaled, Settings.scaled_sensor_errors)),
+             f"small enough that its high end keeps every one of {', '.join(Settings.scaled_sensor_errors)} "
+             "in range")):
+        if broken:
+            raise ValueError(f"{name}={getattr(cfg, name)!r}: it must be {must}")
+    return cfg
+
+
+def ppo_settings(values: dict) -> PPOSettings:
+    """PPOSettings from NAME: VALUE pairs (a checkpoint's, or --set), each checked, or a one-line UsageError."""
+    names = [field.name for field in dataclasses.fields(PPOSettings)]
+    unknown = sorted(set(values) - set(names))
+    if unknown:
+        raise UsageError(f"unknown PPO setting {unknown[0]!r}; the settings are {', '.join(names)}")
+    try:
+        ppo = PPOSettings(**values)
+        check_fields(ppo, PPO_RANGES, "(-inf, inf)")
+    except ValueError as error:
+        raise UsageError(f"PPO setting {error}") from None
+    return ppo
+
 
 # ================================================================================================
 # Files: checkpoints read and checked in one place, outputs written atomically, logs and curves.
@@ -3238,23 +3233,24 @@ def volume_panel(searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
     return label(panel, "volume: observed / occupied / detected")
 
 
+BINS_PANEL_PX = 99   # the side of one map in the demo's bins panel: 9 x 11 pixels, a cell of the middle 3 x 3
+
+
 def bins_panel(state: np.ndarray) -> np.ndarray:
-    """The 4 x 17 bins of the state as four maps, the gripper's front up and its left on the left."""
+    """The state's maps as top views of the crop, the gripper's front up and its left on the left, each pixel
+    shaded by the value of its bin as `column_bins` assigns it."""
     panel = np.full((PANEL[1], PANEL[0], 3), 255, np.uint8)
-    names = ("TSDF above", "TSDF below", "detections above", "detections below")
-    third, ninth = 32, 10   # pixels of an outer cell and of a cell of the middle one
-    for m, name in enumerate(names):
-        values = state[BINS * m:BINS * (m + 1)]
+    ahead = (BINS_PANEL_PX - 0.5 - np.arange(BINS_PANEL_PX)) / BINS_PANEL_PX - 0.5   # crops ahead (rows), left
+    bins = column_bins(*np.meshgrid(ahead, ahead, indexing="ij"), 1.0)              # (side, side)
+    edges = (bins != np.roll(bins, 1, 0)) | (bins != np.roll(bins, 1, 1))
+    edges[[0, -1]] = edges[:, [0, -1]] = True
+    for m, name in enumerate(MAP_NAMES):
+        values = np.abs(state[BINS * m:BINS * (m + 1)])
+        grey = (255 - 230 * np.minimum(1.0, values / max(float(values.max()), 1e-6))).astype(np.uint8)[bins]
+        tile = np.stack([grey, grey, np.full_like(grey, 255) if "detections" in name else grey], -1)
+        tile[edges] = 120
         x0, y0 = 12 + (m % 2) * 156, 30 + (m // 2) * 106
-        scale = max(float(np.abs(values).max()), 1e-6)
-        cells = [(x0 + (2 - b) * third, y0 + (2 - a) * third, third, OUTER_BIN[3 * a + b])   # (x, y, side, bin)
-                 for a in range(3) for b in range(3) if (a, b) != (1, 1)]
-        cells += [(x0 + third + (2 - d) * ninth, y0 + third + (2 - c) * ninth, ninth, 8 + 3 * c + d)
-                  for c in range(3) for d in range(3)]
-        for x, y, side, k in cells:
-            g = int(255 - 230 * min(1.0, abs(values[k]) / scale))
-            cv2.rectangle(panel, (x, y), (x + side, y + side), (g, g, 255) if m >= 2 else (g, g, g), -1)
-            cv2.rectangle(panel, (x, y), (x + side, y + side), (120, 120, 120), 1)
+        panel[y0:y0 + BINS_PANEL_PX, x0:x0 + BINS_PANEL_PX] = tile
         cv2.putText(panel, name, (x0 + 2, y0 - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
     sums = (f"tsdf sum {state[STATE_TSDF_SUM]:.2f}, det sum {state[STATE_DETECTION_SUM]:.2f}, "
             f"roll {state[STATE_ROLL]:.2f}")
@@ -3516,7 +3512,7 @@ def cmd_train(args) -> int:
             raise UsageError("--fresh-terminate needs --init")
     world = run.get("world", {}) if run else dict(args.world or [])
     try:
-        dataclasses.replace(TASKS[args.task], **world)
+        checked_settings(args.task, world)
     except ValueError as error:
         raise UsageError(f"--world: {error}") from None
     writable_folder(out)

@@ -233,6 +233,16 @@ def put(volume, values, xy, z, value):
     volume.weight[i, j, int(z / volume.voxel_m)] = 1.0
 
 
+def bin_at(ahead_m: float, left_m: float, crop_m: float = 1.2) -> int:
+    """The bin of a column ahead of and left of the gripper, as the encoder defines it."""
+    return int(of.column_bins(np.array([ahead_m]), np.array([left_m]), crop_m)[0])
+
+
+def in_state(map_name: str, ahead_m: float, left_m: float) -> int:
+    """The index in the state of a map's bin of a column."""
+    return of.BINS * of.MAP_NAMES.index(map_name) + bin_at(ahead_m, left_m)
+
+
 def test_the_71_values_of_a_hand_built_volume():
     volume = small_volume()
     ee, finger_z = np.array([0.0, 0.0, 0.15]), 0.15
@@ -242,16 +252,16 @@ def test_the_71_values_of_a_hand_built_volume():
     put(volume, volume.tsdf, (0.0, 0.0), 0.05, -1.0)     # under the gripper: the inner centre cell
     put(volume, volume.detections, (0.0, 0.1), 0.05, 0.8)   # to the left, below: inner left cell
     state = of.encode_state(volume, ee, 0.0, 0.3, finger_z, 1.2, 4.0, volume.voxel_m)
-    expected = np.zeros(71, np.float32)
-    # bins: outer (a, b) with a = 2 front, b = 1 middle -> bin 6; back (0, 1) -> bin 1; inner centre 8 + 4
+    assert of.STATE_SIZE == 71 and state.shape == (of.STATE_SIZE,)   # Fig. 2
+    expected = np.zeros(of.STATE_SIZE, np.float32)
     tsdf_sum = 1.0 + 2.0 - 1.0
-    expected[0 + 1] = 2.0 / tsdf_sum                     # TSDF above: back cell
-    expected[17 + 6] = 1.0 / tsdf_sum                    # TSDF below: front cell
-    expected[17 + 12] = -1.0 / tsdf_sum                  # TSDF below: under the gripper
-    expected[51 + 8 + 3 * 1 + 2] = 1.0                   # detections below: inner middle row, left column
-    expected[68] = tsdf_sum / volume.tsdf.size
-    expected[69] = 0.8 / 4.0
-    expected[70] = 0.3
+    expected[in_state("TSDF above", -0.25, 0.0)] = 2.0 / tsdf_sum
+    expected[in_state("TSDF below", 0.25, 0.0)] = 1.0 / tsdf_sum
+    expected[in_state("TSDF below", 0.0, 0.0)] = -1.0 / tsdf_sum
+    expected[in_state("detections below", 0.0, 0.1)] = 1.0
+    expected[of.STATE_TSDF_SUM] = tsdf_sum / volume.tsdf.size
+    expected[of.STATE_DETECTION_SUM] = 0.8 / 4.0
+    expected[of.STATE_ROLL] = 0.3
     np.testing.assert_allclose(state, expected, rtol=1e-5, atol=1e-9)
 
 
@@ -259,20 +269,36 @@ def test_the_71_values_of_a_hand_built_volume():
 def test_a_detection_to_the_gripper_left_lands_in_a_left_bin_whatever_the_yaw(yaw):
     volume = small_volume()
     ee = np.array([0.02, -0.01, 0.2])
-    for forward, left, bin_index in ((0.0, 0.1, 8 + 3 * 1 + 2), (0.0, -0.1, 8 + 3 * 1 + 0),
-                                     (0.1, 0.0, 8 + 3 * 2 + 1), (0.0, 0.25, 4)):
+    below = of.BINS * of.MAP_NAMES.index("detections below")
+    for forward, left in ((0.0, 0.1), (0.0, -0.1), (0.1, 0.0), (0.0, 0.25)):
         volume.detections[:] = 0
         xy = ee[:2] + of.rotation(yaw, "z")[:2, :2] @ [forward, left]
         put(volume, volume.detections, xy, 0.05, 1.0)
         state = of.encode_state(volume, ee, yaw, 0.0, 0.2, 1.2, 1.0, volume.voxel_m)
-        assert np.argmax(state[51:68]) == bin_index and state[51 + bin_index] == 1.0
+        bin_index = bin_at(forward, left)
+        assert np.argmax(state[below:below + of.BINS]) == bin_index and state[below + bin_index] == 1.0
 
 
-def test_bins_partition_the_crop():
+def test_bins_partition_the_crop_into_a_three_by_three_grid_whose_middle_is_split_again():
     u, v = np.meshgrid(np.linspace(-0.8, 0.8, 161), np.linspace(-0.8, 0.8, 161))
     bins = of.column_bins(u.ravel(), v.ravel(), 1.2)
     inside = (np.abs(u.ravel()) < 0.6) & (np.abs(v.ravel()) < 0.6)
-    assert set(bins[inside]) == set(range(17)) and set(bins[~inside]) == {17}
+    assert set(bins[inside]) == set(range(of.BINS)) and set(bins[~inside]) == {of.BINS}
+    cells = (np.arange(90) + 0.5) / 90 * 1.2 - 0.6                     # a fine grid over the crop
+    area = np.bincount(of.column_bins(*np.meshgrid(cells, cells), 1.2).ravel(), minlength=of.BINS) / 90 ** 2
+    assert sorted(np.round(area * 81).astype(int)) == [1] * 9 + [9] * 8   # 9 inner ninths, 8 outer cells
+    assert bin_at(0.0, 0.1) != bin_at(0.0, -0.1) and bin_at(0.3, 0.0) != bin_at(-0.3, 0.0)
+
+
+def test_the_demos_bins_panel_draws_the_encoders_bins(monkeypatch):
+    state = np.zeros(of.STATE_SIZE, np.float32)
+    state[in_state("TSDF below", 0.0, 0.1)] = 1.0                    # the inner cell to the left
+    drawn = lambda: np.argwhere((of.bins_panel(state) == 25).all(axis=2)).mean(axis=0)   # the darkest cell's centre
+    left = drawn()
+    column_bins = of.column_bins
+    monkeypatch.setattr(of, "column_bins", lambda u, v, crop_m: column_bins(u, -v, crop_m))   # left and right swapped
+    right = drawn()
+    assert right[1] > left[1] + 15 and abs(right[0] - left[0]) < 2     # the panel follows: now to the right
 
 
 def test_pooling_the_columns_gives_numpys_bincount_sums_bit_for_bit():
@@ -311,7 +337,7 @@ def test_env_follows_the_gymnasium_api(ap_env):
     from gymnasium.utils.env_checker import check_env
     check_env(ap_env, skip_render_check=True)
     assert ap_env.action_space == gym.spaces.Box(-1, 1, (6,), np.float32)
-    assert ap_env.observation_space.shape == (71,)
+    assert ap_env.observation_space.shape == (of.STATE_SIZE,)
 
 
 @pytest.mark.parametrize("gym_id, task", sorted(of.GYM_IDS.items()))
@@ -1778,7 +1804,7 @@ def test_settings_that_cannot_build_a_scene_are_refused_at_construction_naming_t
     with pytest.raises(ValueError, match=f"^{field}="):
         of.ObjectFindingEnv("ip", **overrides)
     with pytest.raises(ValueError, match=f"^{field}="):
-        dataclasses.replace(of.TASKS["ip"], **overrides)
+        of.checked_settings("ip", overrides)
 
 
 def test_step_or_reset_after_close_says_the_env_is_closed():
@@ -2396,7 +2422,7 @@ def test_a_randomised_sensor_draws_each_episodes_errors_within_its_range():
     before = rng.bit_generator.state
     assert of.episode_sensing(of.TASKS["ap"], rng) is of.TASKS["ap"] and rng.bit_generator.state == before
     with pytest.raises(ValueError, match="sensor_error_scale"):   # its high end must keep each error in range
-        dataclasses.replace(of.TASKS["ap"], tof_noise_ratio=0.1, sensor_error_scale=(0.0, 3.0))
+        of.checked_settings("ap", dict(tof_noise_ratio=0.1, sensor_error_scale=(0.0, 3.0)))
 
 
 def test_a_training_world_is_kept_in_the_checkpoint_and_by_a_resumed_run(tmp_path, monkeypatch, capsys):

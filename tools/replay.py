@@ -9,7 +9,6 @@ area) and per frame frames/NNNNNN-color.png, -depth.png (16-bit mm, 0: no return
 (T_base_tool, T_base_depth), and from the simulation -depth.npy, -detections.npy (what the searcher fused).
 """
 import csv
-import dataclasses
 import json
 import os
 import shutil
@@ -22,7 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from objfind import (ACTION_NAMES, BASELINES, LEARNED, PANEL, TASKS, ArgumentParser, ArmSearch, Camera,  # noqa: E402
                      ObjectFindingEnv, Rig, Searcher, Settings, UsageError, add_agent_args, agent_policy,
-                     bins_panel, default_task, detect_target, label, make_agent, quat_of, run_cli, seed_arg,
+                     bins_panel, checked_settings, default_task, detect_target, label, make_agent, quat_of, run_cli, seed_arg,
                      volume_panel, wrist_panel, write_contact_sheet, write_csv, writable_folder)
 
 RECORDING_FORMAT = "objfind-recording/1"
@@ -163,8 +162,8 @@ def read_recording(folder: Path, depth_source: str | None = None, masks: Path | 
         if meta.get("task") not in TASKS or not isinstance(meta.get("settings", {}), dict):
             raise ValueError(f"recording.json: task must be one of {', '.join(TASKS)}, settings an object")
         try:
-            cfg = dataclasses.replace(TASKS[meta["task"]], **meta.get("settings", {}))
-        except TypeError as error:
+            cfg = checked_settings(meta["task"], meta.get("settings", {}))
+        except ValueError as error:
             raise ValueError(f"recording.json settings: {error}") from None
         depth, rgb = checked_camera(meta.get("depth_camera"), "depth_camera"), checked_camera(meta.get("rgb_camera"), "rgb_camera")
         T_depth_rgb = checked_transform(meta.get("T_depth_rgb"), "T_depth_rgb")
