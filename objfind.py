@@ -1,34 +1,14 @@
 """objfind: object finding in cluttered scenes using interactive perception.
 
 A single-file reimplementation of Novkovic, Pautrat et al., "Object Finding in Cluttered Scenes Using
-Interactive Perception", ICRA 2020. A floating gripper with a wrist RGB-D camera looks for a red
-target among (active task) or inside piles of (interactive task) objects. Each view is fused into a
-TSDF volume with a detection channel, the volume is summarised into the 71 numbers of the paper's
-Fig. 2, and an agent picks the next gripper displacement.
+Interactive Perception", ICRA 2020. A gripper with a wrist RGB-D camera looks for a red target among
+(active task) or inside piles of (interactive task) objects; its views are fused into a TSDF with a
+detection channel, summarised into the 71 numbers of Fig. 2, and an agent picks the next displacement.
 
-Read top to bottom, in the order data flows (Fig. 2: world -> images -> searcher -> state -> policy
--> displacement -> world). The robot's side first, then the world it is simulated in, then learning:
-
-    settings         Settings (Table I presets in TASKS), SCENES, PPOSettings
-    perception       detect_target: a CIELAB colour detector
-    volume           TSDFVolume: TSDF + detection channel, carving, max weight 2; fuse_view, its voxel loop (Numba)
-    encoder          encode_state: the volume around the gripper -> 71 values
-    frames           gripper poses; Camera and Rig: the wrist cameras and their calibration
-    searcher         Searcher: views in, state out, an action -> the next gripper pose (no simulator)
-    agents           RandomAgent, ScriptedAgent, GreedyNextBestView, two_opt, GridExhaustiveSearch
-    policy           ActorCritic, PPOAgent: A3DE and I3DE
-    on an arm        ArmSearch: a wrist frame in, the next gripper pose in the robot's base frame out
-    world I-III      render_rgbd, the detector's noise; scenes (MeshModel); ObjectFindingEnv (a gymnasium.Env,
-                     registered as objfind/...-v0): physics, the wrist view, ground truth, rewards
-    learning         gae, ppo_update, collect_rollout, ppo_iteration
-    ---------------- the paper's system ends; the harness follows
-    files            read_checkpoint (every check in one place), atomic writes, logs, learning curves
-    training runs    train: worker processes, resume, checkpoints, Ctrl-C and SIGTERM
-    evaluation       make_agent, run_episode, evaluate (each row stamped with what made it), the Table II layout
-    demo, replay     run_demo (PNG + MP4); recordings as an RGB-D logger writes them, replayed through ArmSearch
-    bench            run_bench (per-stage milliseconds, steps/s)
-    soak             random episodes with hostile actions: crashes, non-finite values, leaks
-    command line     python objfind.py demo | replay | eval | train | bench | soak
+Read top to bottom, as data flows: settings; the robot's side (perception, volume, encoder, frames,
+searcher, agents, policy, ArmSearch); the simulated world it is fed by (rendering and sensors, scenes,
+ObjectFindingEnv); learning (PPO). Below the line where the paper's system ends: input checks, files,
+training runs, evaluation and Table II, the demo, and the command line (train, eval, demo).
 """
 from __future__ import annotations
 
@@ -351,12 +331,12 @@ def back_project(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def fuse_view(tsdf, weight, detection, depth_m, scores, terms_x, terms_y, terms_z, columns, far_m, trunc_m,
+def fuse_view(tsdf, weight, channel, depth_m, detections, terms_x, terms_y, terms_z, columns, far_m, trunc_m,
               per_trunc_m, max_weight, updated_voxels, updated_detections):
     """TSDF fusion's loop over voxels: each voxel of the given columns that projects onto a return and lies in
     front of it or up to trunc_m behind takes the view into its running averages (TSDFVolume.integrate).
     terms_*: (3, n) per-axis terms of (u z, v z, z). Returns (voxels seen for the first time, voxels updated)
-    and writes the updated ones' flat indices and new detection values to updated_*. Voxel centres and a
+    and writes the updated ones' flat indices and new channel values to updated_*. Voxel centres and a
     view's values are float64, the volume float32 (a test: the same volume as whole-volume numpy)."""
     H, W = depth_m.shape
     nz = terms_z.shape[1]
@@ -402,10 +382,11 @@ def fuse_view(tsdf, weight, detection, depth_m, scores, terms_x, terms_y, terms_
                 # pixel's score fading to 0 at trunc_m), averaged alike and carved out of free space
                 w_sum = w_old + np.float32(1.0)
                 tsdf[i, j, k] = (tsdf[i, j, k] * w_old + min(1.0, sdf * per_trunc_m)) / w_sum
-                detection_new = (detection[i, j, k] * w_old + scores[row, col] * max(0.0, 1.0 - abs(sdf) / trunc_m)) / w_sum
+                fade = max(0.0, 1.0 - abs(sdf) / trunc_m)
+                detection_new = (channel[i, j, k] * w_old + detections[row, col] * fade) / w_sum
                 if sdf >= trunc_m:
                     detection_new = 0.0
-                detection[i, j, k] = detection_new
+                channel[i, j, k] = detection_new
                 weight[i, j, k] = min(w_sum, max_weight)
                 updated_voxels[updated] = (i * tsdf.shape[1] + j) * nz + k
                 updated_detections[updated] = detection_new
@@ -437,7 +418,8 @@ class TSDFVolume:
         self.voxel_of_cell = None        # the same grid, or the voxel holding each cell's centre (flat indices)
         if area_shape != self.shape:
             centres = np.meshgrid(*[(np.arange(n) + 0.5) * self.area_cell_m for n in area_shape], indexing="ij")
-            voxels = [np.minimum(np.floor(c / self.voxel_m).astype(np.int64), n - 1) for c, n in zip(centres, self.shape)]
+            voxels = [np.minimum(np.floor(c / self.voxel_m).astype(np.int64), n - 1)
+                      for c, n in zip(centres, self.shape)]
             self.voxel_of_cell = np.ravel_multi_index(tuple(v.reshape(-1) for v in voxels), self.shape)
         # Voxel centres are separable, so we keep three 1-D axes instead of an (N, 3) array: a voxel's
         # projection is then a sum of three per-axis terms (integrate), never a matrix product per voxel.
@@ -517,16 +499,14 @@ class TSDFVolume:
         detected = (detections > self.detection_threshold) & (depth_m > 0)
         if not detected.any():
             return
-        # The surface a pixel covers is |dP/du x dP/dv| for points the back-projected depth image, each
-        # derivative taken towards the neighbour on the same surface (the smaller one-sided
-        # difference), so pixels along the target's outline do not borrow the depth jump to the
-        # background. A pixel seeing its surface more obliquely than the ground truth's limit counts
-        # nothing; a pixel on the outline of the detections, partly target at best (or a sliver of a
-        # face seen nearly edge-on), counts half; with a separate RGB camera, so does a pixel on the outline in
-        # its image, which spans several depth pixels and is registered only that well. Each pixel is split into 2 x 2 sub-pixels carrying
-        # a quarter of its area, so that area lands in the right voxel even when a pixel is as large
-        # as a voxel (far views). On a noisy depth camera the derivatives are taken on its depth
-        # median-filtered (area_median_px): noise roughens a surface, and a rough surface has more area.
+        # A pixel covers |dP/du x dP/dv| of surface, P the back-projected depth image, each derivative taken
+        # towards the neighbour on the same surface (the smaller one-sided difference), so that the target's
+        # outline does not borrow the depth jump to the background. A pixel seeing its surface more obliquely
+        # than the ground truth's limit counts nothing; one on the detections' outline (partly target at best),
+        # or on their outline in a separate RGB camera's image (registered only to about one RGB pixel), half.
+        # 2 x 2 sub-pixels carry a quarter of a pixel's area each, so that area lands in the right cell even
+        # when a pixel is as large as a cell. On a noisy camera the derivatives are taken on median-filtered
+        # depth (area_median_px): noise roughens a surface, and a rough surface has more area.
         smooth_m = cv2.medianBlur(depth_m.astype(np.float32), self.area_median_px) if self.area_median_px else depth_m
         points = back_project(smooth_m, K)
         pixel_area = vector_norm(np.cross(surface_derivative(points, 1), surface_derivative(points, 0)))
@@ -639,8 +619,8 @@ def rotation(angle: float, axis: str) -> np.ndarray:
 
 def axis_angle_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     """The 3 x 3 rotation by `angle` (radians) about a unit axis (Rodrigues' formula)."""
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    skew = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * skew + (1 - np.cos(angle)) * skew @ skew
 
 
 # The gripper in the tool frame (origin between the fingertips, z along the approach axis): a palm
@@ -818,8 +798,8 @@ class Searcher:
 # ================================================================================================
 # Agents (Sec. IV-B): each decides from the robot's Searcher and the gripper's pose alone, with
 # reset(searcher, T_world_tool) and act(searcher, T_world_tool) -> an action in Box(-1, 1, (6,)):
-# dx, dy, dz, roll, yaw, and terminate when the sixth value is above 0. Two simple agents and the
-# two baselines; the learned policies follow in the next section.
+# dx, dy, dz, roll, yaw, and terminate when the sixth value is above 0. The two baselines here; the
+# learned policies follow in the next section.
 # ================================================================================================
 
 ACTION_MOVES = 5        # dx, dy, dz, roll, yaw; then terminate
@@ -832,51 +812,6 @@ def stop_action() -> np.ndarray:
     action = np.zeros(ACTION_SIZE, np.float32)
     action[ACTION_MOVES] = 1.0
     return action
-
-
-class RandomAgent:
-    """Uniform random displacements; terminates with a small probability per step."""
-
-    terminate_prob = 0.02   # about 50 steps per episode, well inside the horizon
-
-    def __init__(self, cfg: Settings, seed: int | None = None):
-        self.rng = np.random.default_rng(seed)
-
-    def reset(self, searcher: Searcher, T_world_tool: np.ndarray) -> None:
-        pass
-
-    def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
-        action = self.rng.uniform(-1, 1, ACTION_SIZE).astype(np.float32)
-        action[ACTION_MOVES] = 1.0 if self.rng.random() < self.terminate_prob else -1.0
-        return action
-
-
-class ScriptedAgent:
-    """A hand-written searcher: rise to the ceiling, tilt, then turn on the spot while drifting to the
-    workspace centre; terminate once the volume holds a perceived target or after one full turn."""
-
-    tilt_rad = 0.6   # looks past the walls' tops from the ceiling
-
-    def __init__(self, cfg: Settings, seed: int | None = None):
-        pass
-
-    def reset(self, searcher: Searcher, T_world_tool: np.ndarray) -> None:
-        self.turned_rad = 0.0
-
-    def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
-        T = T_world_tool
-        yaw, roll = yaw_roll_of(T[:3, :3])
-        if searcher.target_found() or self.turned_rad >= 2 * np.pi:
-            return stop_action()
-        action = np.zeros(ACTION_SIZE, np.float32)
-        action[ACTION_MOVES] = -1.0
-        to_centre = rotation(yaw, "z").T @ np.r_[-T[0, 3], -T[1, 3], searcher.ceiling_m - T[2, 3]]
-        action[:3] = np.clip(to_centre / searcher.max_step_m, -1, 1)
-        action[3] = np.clip((self.tilt_rad - roll) / searcher.max_turn_rad, -1, 1)
-        if T[2, 3] > searcher.ceiling_m - searcher.max_step_m:      # high enough: start turning
-            action[4] = 1.0
-            self.turned_rad += searcher.max_turn_rad
-        return action
 
 
 class GreedyNextBestView:
@@ -909,10 +844,11 @@ class GreedyNextBestView:
         self.reached = np.zeros(searcher.volume.weight.size, bool)   # scratch: voxels one view would observe
         self.ray_points = (rays[:, None, :] * self.depths[None, :, None]).astype(np.float32)   # (R, D, 3)
 
-    def samples_needed(self, T: np.ndarray, box_half: float) -> int:
-        """How many samples along the rays of camera pose T can matter: a ray hits nothing once it has left
+    def samples_needed(self, T_world_camera: np.ndarray, box_half: float) -> int:
+        """How many samples along the rays of a camera pose can matter: a ray hits nothing once it has left
         the square of the floor and walls, or gone below the floor (a straight ray never comes back)."""
-        direction, start = self.ray_directions @ T[:3, :3].T, T[:3, 3]   # world = start + depth * direction
+        start = T_world_camera[:3, 3]
+        direction = self.ray_directions @ T_world_camera[:3, :3].T   # a sample is start + depth * direction
         with np.errstate(divide="ignore", invalid="ignore"):
             side = np.where(direction[:, :2] == 0, np.inf,
                             (np.sign(direction[:, :2]) * box_half - start[:2]) / direction[:, :2])
@@ -930,9 +866,10 @@ class GreedyNextBestView:
         counts = np.zeros(len(T_cameras), np.int64)
         shape = np.array(volume.shape)
         half, floor_half = searcher.workspace_m / 2, searcher.workspace_m / 2 + 2 * self.wall_thickness_m
-        for c, T in enumerate(T_cameras):
-            samples = self.ray_points[:, :self.samples_needed(T, floor_half)]   # the rest can hit nothing
-            world = samples @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)  # (R, D', 3)
+        for c, T_world_camera in enumerate(T_cameras):
+            samples = self.ray_points[:, :self.samples_needed(T_world_camera, floor_half)]   # the rest can hit nothing
+            R_camera_world = T_world_camera[:3, :3].T.astype(np.float32)
+            world = samples @ R_camera_world + T_world_camera[:3, 3].astype(np.float32)   # (rays, samples, 3)
             index = np.floor((world - volume.origin) / volume.voxel_m).astype(np.int64)
             inside = np.all((index >= 0) & (index < shape), axis=-1)
             inside &= np.all(np.abs(world[..., :2] - ee_xyz[:2]) <= searcher.crop_m / 2, axis=-1)
@@ -953,8 +890,8 @@ class GreedyNextBestView:
     def centring_error(self, T_cameras: np.ndarray, target_xyz: np.ndarray, K: np.ndarray) -> np.ndarray:
         """Pixel distance of the target's projection from the image centre, per camera (inf if behind)."""
         errors = np.full(len(T_cameras), np.inf)
-        for c, T in enumerate(T_cameras):
-            p = T[:3, :3].T @ (target_xyz - T[:3, 3])
+        for c, T_world_camera in enumerate(T_cameras):
+            p = T_world_camera[:3, :3].T @ (target_xyz - T_world_camera[:3, 3])
             if p[2] > 1e-3:
                 errors[c] = np.hypot(K[0, 0] * p[0] / p[2], K[1, 1] * p[1] / p[2])
         return errors
@@ -1034,10 +971,9 @@ class GridExhaustiveSearch:
         return np.array(tour)
 
     def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
-        T = T_world_tool
-        yaw, roll = yaw_roll_of(T[:3, :3])
+        yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
         while self.next < len(self.route):            # skip the nodes reached or given up
-            offset = np.r_[self.nodes[self.route[self.next]], self.height_m] - T[:3, 3]
+            offset = np.r_[self.nodes[self.route[self.next]], self.height_m] - T_world_tool[:3, 3]
             if np.linalg.norm(offset[:2]) > self.node_tol_m and self.tries < self.tries_per_node:
                 break
             self.next, self.tries = self.next + 1, 0
@@ -1206,7 +1142,7 @@ class PhysicsClient(BulletClient):
         self._shapes, self._pid = {}, os.getpid()
         self._client = pb.connect(pb.DIRECT)
 
-    def new_world(self) -> None:
+    def clear(self) -> None:
         """An empty world (pybullet's resetSimulation frees every shape, so the shapes made are forgotten)."""
         self.resetSimulation()
         self._shapes.clear()
@@ -1519,8 +1455,8 @@ def rest_rotations(hull: np.ndarray) -> tuple:
     rests = []
     for d in down[minima]:   # the rotation taking d onto -z (Rodrigues), about the axis d x -z
         axis, cos = np.cross(d, [0.0, 0.0, -1.0]), -d[2]
-        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-        rests.append(np.eye(3) + K + K @ K / (1 + cos) if cos > -1 + 1e-9 else np.diag([1.0, -1.0, -1.0]))
+        skew = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        rests.append(np.eye(3) + skew + skew @ skew / (1 + cos) if cos > -1 + 1e-9 else np.diag([1.0, -1.0, -1.0]))
     return tuple(rests)
 
 
@@ -1560,11 +1496,12 @@ def exterior_surface(urdf_path: str, scale: float, min_cos: float, candidates: i
             z_axis = -d
             x_axis = np.cross(z_axis, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
             x_axis /= np.linalg.norm(x_axis)
-            T = np.eye(4)
-            T[:3, :3] = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], 1)
-            T[:3, 3] = d * distance
-            _, depth = render_rgbd(sim, T, Camera(pixels, pixels, K, distance - 2 * radius, distance + 2 * radius))
-            cam = (points - T[:3, 3]) @ T[:3, :3]
+            T_world_camera = np.eye(4)
+            T_world_camera[:3, :3] = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], 1)
+            T_world_camera[:3, 3] = d * distance
+            camera = Camera(pixels, pixels, K, distance - 2 * radius, distance + 2 * radius)
+            _, depth = render_rgbd(sim, T_world_camera, camera)
+            cam = (points - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]
             u = np.clip((K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2]).astype(int), 0, pixels - 1)
             v = np.clip((K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]).astype(int), 0, pixels - 1)
             cos = normals @ d                           # d points from the model to the camera
@@ -1893,11 +1830,11 @@ class ObjectFindingEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (STATE_SIZE,), np.float32)
         self.searcher = Searcher(self.cfg)
-        self.rig = self.searcher.rig   # the cameras as mounted; reset() adds the episode's hand-eye error
-        self.worlds = [(self.cfg, self.searcher)]   # the sensing an episode may draw (rig_camera_share)
+        self.true_rig = self.searcher.rig   # the cameras as mounted; reset() adds the episode's hand-eye error
+        self.sensings = [(self.cfg, self.searcher)]   # the sensing an episode may draw (rig_camera_share)
         if self.cfg.rig_camera_share > 0:
             rig_cfg = dataclasses.replace(self.cfg, **RIG_SENSING)
-            self.worlds.append((rig_cfg, Searcher(rig_cfg)))
+            self.sensings.append((rig_cfg, Searcher(rig_cfg)))
         self.sim = PhysicsClient()
         self.objects = []
         self.view: WristView | None = None
@@ -1938,7 +1875,7 @@ class ObjectFindingEnv(gym.Env):
         "seen" by the ground truth, add the depth camera's errors, and feed the searcher, which places the
         view by its own calibration; returns the voxels it observed for the first time."""
         T_world_tool = self.gripper_pose()
-        T_world_depth = T_world_tool @ self.rig.T_tool_depth
+        T_world_depth = T_world_tool @ self.true_rig.T_tool_depth
         rgb, depth_m = self._render(T_world_depth)
         detections = self._detect(rgb)
         self._judge_seen(T_world_depth, depth_m)
@@ -1958,9 +1895,9 @@ class ObjectFindingEnv(gym.Env):
         (what lies closer than the sensor's minimum range must still hide what is behind it)."""
         def render(T_world_camera, camera):
             return self._render_world(T_world_camera, dataclasses.replace(camera, near_m=self.cfg.near_m))
-        rgb, depth_m = render(T_world_depth, self.rig.depth)
-        if not self.rig.one_camera:
-            rgb, _ = render(T_world_depth @ self.rig.T_depth_rgb, self.rig.rgb)
+        rgb, depth_m = render(T_world_depth, self.true_rig.depth)
+        if not self.true_rig.one_camera:
+            rgb, _ = render(T_world_depth @ self.true_rig.T_depth_rgb, self.true_rig.rgb)
         return rgb, depth_m
 
     def _detect(self, rgb: np.ndarray) -> np.ndarray:
@@ -1980,7 +1917,7 @@ class ObjectFindingEnv(gym.Env):
         cam = (world - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]     # R^T (p - t), row-wise
         z = cam[:, 2]
         safe = np.where(z > 1e-6, z, 1.0)
-        K = self.rig.depth.K
+        K = self.true_rig.depth.K
         u = np.floor(K[0, 0] * cam[:, 0] / safe + K[0, 2]).astype(int)
         v = np.floor(K[1, 1] * cam[:, 1] / safe + K[1, 2]).astype(int)
         H, W = depth_m.shape
@@ -2029,12 +1966,12 @@ class ObjectFindingEnv(gym.Env):
         rng = self.np_random
         self._build_scene(rng)
         self._place_gripper(rng)
-        if len(self.worlds) > 1:
-            cfg, self.searcher = self.worlds[int(rng.random() < self.cfg.rig_camera_share)]
+        if len(self.sensings) > 1:
+            cfg, self.searcher = self.sensings[int(rng.random() < self.cfg.rig_camera_share)]
         else:
             cfg = self.cfg
         self.sensing = episode_sensing(cfg, rng)   # the sensor errors this episode's world applies
-        self.rig = mounted_rig(self.searcher.rig, rng, self.sensing)
+        self.true_rig = mounted_rig(self.searcher.rig, rng, self.sensing)
         # the information rule: what the searcher is told of the target's size (the nominal cube's if absent)
         self.searcher.reset(self.target_area_m2 if self.cfg.target_size_known else self.cfg.nominal_target_area_m2)
         self.steps, self.episode_over = 0, False
@@ -2047,7 +1984,7 @@ class ObjectFindingEnv(gym.Env):
         pair cache, a cursor of the pairs it checks each step), and a world kept from the last episode would
         order contacts differently, so an episode would depend on the episodes played before it."""
         cfg, sim = self.cfg, self.sim
-        sim.new_world()
+        sim.clear()
         sim.setGravity(0, 0, -9.81)
         sim.setPhysicsEngineParameter(fixedTimeStep=1.0 / cfg.physics_hz, erp=cfg.gripper_erp,
                                       numSolverIterations=cfg.solver_iterations, deterministicOverlappingPairs=1)
@@ -2078,10 +2015,10 @@ class ObjectFindingEnv(gym.Env):
     def gripper_pose(self) -> np.ndarray:
         """T_world_tool (4 x 4) of the gripper body as simulated: what the arm reports."""
         pos, orn = self.sim.getBasePositionAndOrientation(self.gripper)
-        T = np.eye(4)
-        T[:3, :3] = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
-        T[:3, 3] = pos
-        return T
+        T_world_tool = np.eye(4)
+        T_world_tool[:3, :3] = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        T_world_tool[:3, 3] = pos
+        return T_world_tool
 
     def _teleport(self, xyz, R) -> None:
         q = quat_of(R)
@@ -2133,12 +2070,12 @@ class ObjectFindingEnv(gym.Env):
         forward /= np.linalg.norm(forward)
         right = np.cross(forward, [0.0, 0.0, 1.0])
         right /= np.linalg.norm(right)
-        T = np.eye(4)
-        T[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)   # OpenCV axes: x right, y down
-        T[:3, 3] = eye
+        T_world_camera = np.eye(4)
+        T_world_camera[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)   # OpenCV: x right, y down
+        T_world_camera[:3, 3] = eye
         K = np.array([[height * 1.1, 0, width / 2], [0, height * 1.1, height / 2], [0, 0, 1]])
-        rgb, depth = self._render_world(T, Camera(width, height, K, 0.05, 4 * self.cfg.workspace_m))
-        return paint_gripper(rgb, depth, T, K, self.gripper_pose())
+        rgb, depth = self._render_world(T_world_camera, Camera(width, height, K, 0.05, 4 * self.cfg.workspace_m))
+        return paint_gripper(rgb, depth, T_world_camera, K, self.gripper_pose())
 
     def __reduce__(self):
         raise TypeError("an ObjectFindingEnv holds a live physics world and cannot be copied or pickled; make "
@@ -2167,11 +2104,11 @@ def gae(rewards, values, dones, last_value, gamma: float, lam: float):
     """Generalised advantage estimation (Schulman et al. 2016, eq. 16) over (T, W) arrays, dones[t] ending
     the episode at t: A_t = delta_t + gamma lam A_{t+1}, delta_t = r_t + gamma V(s_{t+1}) - V(s_t), computed
     backwards; the critic's targets are A_t + V(s_t)."""
-    T = len(rewards)
+    steps = len(rewards)
     advantages = np.zeros_like(rewards)
     running = np.zeros_like(last_value)
-    for t in reversed(range(T)):   # a loop over time steps, not data: T x W arrays at once
-        next_value = last_value if t == T - 1 else values[t + 1]
+    for t in reversed(range(steps)):   # a loop over time steps, not data: T x W arrays at once
+        next_value = last_value if t == steps - 1 else values[t + 1]
         not_done = 1.0 - dones[t]
         delta = rewards[t] + gamma * next_value * not_done - values[t]
         running = delta + gamma * lam * not_done * running
@@ -2876,6 +2813,53 @@ PAPER_TABLE_II = {   # (agent, task): {scene: (success %, average steps)}; 1000 
 
 PAPER_NO_TARGET = {"a3de": 100.0, "i3de": 96.1}   # % of no-target scenes ended correctly (Sec. V-A)
 
+# Two simple agents beside the paper's baselines: a floor to compare with, and a check of the pipeline.
+
+class RandomAgent:
+    """Uniform random displacements; terminates with a small probability per step."""
+
+    terminate_prob = 0.02   # about 50 steps per episode, well inside the horizon
+
+    def __init__(self, cfg: Settings, seed: int | None = None):
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self, searcher: Searcher, T_world_tool: np.ndarray) -> None:
+        pass
+
+    def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
+        action = self.rng.uniform(-1, 1, ACTION_SIZE).astype(np.float32)
+        action[ACTION_MOVES] = 1.0 if self.rng.random() < self.terminate_prob else -1.0
+        return action
+
+
+class ScriptedAgent:
+    """A hand-written searcher: rise to the ceiling, tilt, then turn on the spot while drifting to the
+    workspace centre; terminate once the volume holds a perceived target or after one full turn."""
+
+    tilt_rad = 0.6   # looks past the walls' tops from the ceiling
+
+    def __init__(self, cfg: Settings, seed: int | None = None):
+        pass
+
+    def reset(self, searcher: Searcher, T_world_tool: np.ndarray) -> None:
+        self.turned_rad = 0.0
+
+    def act(self, searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
+        yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
+        if searcher.target_found() or self.turned_rad >= 2 * np.pi:
+            return stop_action()
+        action = np.zeros(ACTION_SIZE, np.float32)
+        action[ACTION_MOVES] = -1.0
+        x, y, z = T_world_tool[:3, 3]
+        to_centre = rotation(yaw, "z").T @ np.r_[-x, -y, searcher.ceiling_m - z]
+        action[:3] = np.clip(to_centre / searcher.max_step_m, -1, 1)
+        action[3] = np.clip((self.tilt_rad - roll) / searcher.max_turn_rad, -1, 1)
+        if z > searcher.ceiling_m - searcher.max_step_m:      # high enough: start turning
+            action[4] = 1.0
+            self.turned_rad += searcher.max_turn_rad
+        return action
+
+
 BASELINES = {"random": RandomAgent, "scripted": ScriptedAgent, "gnbv": GreedyNextBestView,
              "ges": GridExhaustiveSearch}
 
@@ -3544,8 +3528,8 @@ def add_agent_args(command, default_agent: str | None) -> None:
     """The flags that pick what runs: agent, task, scene, weights (demo and eval)."""
     command.add_argument("--agent", choices=list(BASELINES) + list(LEARNED), default=default_agent,
                          help="random, scripted, the baselines gnbv and ges, or the learned a3de and i3de")
-    command.add_argument("--task", choices=list(TASKS), help="Table I preset: ap (active), ap-large, ip (interactive, piles), and the "
-                         "real-world ap-real and ip-real; default ip for ges and i3de, ap otherwise")
+    command.add_argument("--task", choices=list(TASKS), help="Table I preset: ap (active), ap-large, ip (interactive, "
+                         "piles), the real-world ap-real and ip-real; default ip for ges and i3de, ap otherwise")
     command.add_argument("--scene", choices=SCENES, help="scene kind (default cubes)")
     command.add_argument("--weights", help="a learned agent's checkpoint (default: weights/AGENT.pt, "
                          "AGENT-large.pt on ap-large)")

@@ -2173,16 +2173,16 @@ def test_the_hand_eye_error_has_the_stated_size_and_stays_for_the_episode():
     assert np.isclose(np.arccos((np.trace(error[:3, :3]) - 1) / 2), 0.0175)
     env = of.ObjectFindingEnv("ap", "cubes", hand_eye_error_m=0.003, hand_eye_error_rad=0.0175)
     env.reset(seed=0)
-    mounted = env.rig.T_tool_depth
+    mounted = env.true_rig.T_tool_depth
     env.step(np.array([0.5, 0, 0, 0, 0, -1.0]))
-    assert np.array_equal(env.rig.T_tool_depth, mounted) and not np.array_equal(mounted, env.searcher.rig.T_tool_depth)
+    assert np.array_equal(env.true_rig.T_tool_depth, mounted) and not np.array_equal(mounted, env.searcher.rig.T_tool_depth)
     assert np.array_equal(env.view.T_world_camera, env.searcher.camera_pose(env.gripper_pose()))   # what it believes
     env.close()
 
 
 def test_detections_of_an_offset_rgb_camera_land_on_the_target_in_the_depth_image():
     env = of.ObjectFindingEnv("ap", "cubes", rgb_offset_m=(0.03, 0.0, 0.0))
-    rig = env.rig
+    rig = env.true_rig
     assert not rig.one_camera
     for seed in range(30):
         env.reset(seed=seed)
@@ -2326,12 +2326,12 @@ def test_the_drawn_floor_is_the_floor_tinyrenderer_drew():
     cfg = env.cfg
     for seed in range(3):
         env.reset(seed=seed)
-        T = env.gripper_pose() @ env.rig.T_tool_depth
+        T = env.gripper_pose() @ env.true_rig.T_tool_depth
         rgb, depth = env._render(T)
         floor = env.sim.createMultiBody(0, -1, env.sim.createVisualShape(
             of.pb.GEOM_BOX, halfExtents=[of.floor_half_m(cfg)] * 2 + [cfg.wall_thickness_m],
             visualFramePosition=[0, 0, -cfg.wall_thickness_m], rgbaColor=of.FLOOR_RGBA))
-        rgb_drawn, depth_drawn = of.render_rgbd(env.sim, T, of.dataclasses.replace(env.rig.depth, near_m=cfg.near_m))
+        rgb_drawn, depth_drawn = of.render_rgbd(env.sim, T, of.dataclasses.replace(env.true_rig.depth, near_m=cfg.near_m))
         env.sim.removeBody(floor)
         assert np.array_equal(depth > 0, depth_drawn > 0) and np.array_equal(rgb, rgb_drawn)
         assert np.abs(depth - depth_drawn).max() < 1e-5 and (depth > 0).mean() > 0.5

@@ -19,10 +19,10 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from objfind import (ACTION_NAMES, BASELINES, LEARNED, PANEL, TASKS, ArgumentParser, ArmSearch, Camera,  # noqa: E402
-                     ObjectFindingEnv, Rig, Searcher, Settings, UsageError, add_agent_args, agent_policy,
-                     bins_panel, checked_settings, default_task, detect_target, label, make_agent, quat_of, run_cli, seed_arg,
-                     volume_panel, wrist_panel, write_contact_sheet, write_csv, writable_folder)
+from objfind import (ACTION_NAMES, BASELINES, LEARNED, PANEL, TASKS, ArgumentParser, ArmSearch,  # noqa: E402
+                     Camera, ObjectFindingEnv, Rig, Searcher, Settings, UsageError, add_agent_args, agent_policy,
+                     bins_panel, checked_settings, default_task, detect_target, label, make_agent, quat_of,
+                     run_cli, seed_arg, volume_panel, wrist_panel, write_contact_sheet, write_csv, writable_folder)
 
 RECORDING_FORMAT = "objfind-recording/1"
 DEPTH_PNG_M = 0.001   # a 16-bit depth PNG holds millimetres (0: no return), as RealSense and ROS loggers write
@@ -165,7 +165,8 @@ def read_recording(folder: Path, depth_source: str | None = None, masks: Path | 
             cfg = checked_settings(meta["task"], meta.get("settings", {}))
         except ValueError as error:
             raise ValueError(f"recording.json settings: {error}") from None
-        depth, rgb = checked_camera(meta.get("depth_camera"), "depth_camera"), checked_camera(meta.get("rgb_camera"), "rgb_camera")
+        depth = checked_camera(meta.get("depth_camera"), "depth_camera")
+        rgb = checked_camera(meta.get("rgb_camera"), "rgb_camera")
         T_depth_rgb = checked_transform(meta.get("T_depth_rgb"), "T_depth_rgb")
         if camera_json(rgb) == camera_json(depth) and np.array_equal(T_depth_rgb, np.eye(4)):
             rgb = depth   # one RGB-D camera
@@ -246,7 +247,8 @@ def replay(cfg: Settings, rig: Rig, meta: dict, frames: list, agent_name: str, p
         goal = dict(zip(("goal_x_m", "goal_y_m", "goal_z_m", "goal_qx", "goal_qy", "goal_qz", "goal_qw"),
                         [None] * 7 if T_goal is None else [*T_goal[:3, 3], *quat_of(T_goal[:3, :3])]))
         rows.append(row | {k: v if v is None else float(v) for k, v in goal.items()})
-        command = "stop: the search ends" if T_goal is None else "move to ({:.3f}, {:.3f}, {:.3f}) m".format(*T_goal[:3, 3])
+        command = ("stop: the search ends" if T_goal is None else
+                   "move to ({:.3f}, {:.3f}, {:.3f}) m".format(*T_goal[:3, 3]))
         pictures.append(np.concatenate([
             wrist_panel(frame["rgb"], detections, searcher.detection_threshold),
             volume_panel(searcher, T_tool), bins_panel(states[-1]),

@@ -12,9 +12,9 @@ import numpy as np
 from matplotlib.figure import Figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from objfind import (LEARNED, RIG_SENSING, ArgumentParser, cell_origin, default_weights, episodes_arg,  # noqa: E402
-                     evaluate, learned_policy, replace_atomically, run_cli, save_figure, seed_arg, stored_cell, summarise,
-                     workers_arg, write_csv, writable_folder)
+from objfind import (LEARNED, RIG_SENSING, ArgumentParser, cell_origin, default_weights,  # noqa: E402
+                     episodes_arg, evaluate, learned_policy, replace_atomically, run_cli, save_figure, seed_arg,
+                     stored_cell, summarise, workers_arg, write_csv, writable_folder)
 
 
 RIG_ERRORS = {k: RIG_SENSING[k] for k in ("tof_noise_ratio", "tof_missing_share", "tof_edge_jump_m",
