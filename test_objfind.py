@@ -173,7 +173,7 @@ def test_compiled_fusion_equals_whole_volume_numpy_fusion(task):
     env.reset(seed=3)
     fused, reference = of.TSDFVolume(env.cfg), of.TSDFVolume(env.cfg)
     K, rng = env.searcher.rig.depth.K, np.random.default_rng(5)
-    for action in of.exploring_actions(np.random.default_rng(4), 12):
+    for action in bench.exploring_actions(np.random.default_rng(4), 12):
         view = env.view
         scores = rng.random(view.depth_m.shape).astype(np.float32)   # scores everywhere: every band is averaged
         fused.integrate(view.depth_m, scores, K, view.T_world_camera)
@@ -393,7 +393,7 @@ def episode_digest(env, seed: int, steps: int = 15) -> str:
     state, _ = env.reset(seed=seed)
     poses = [env.sim.getBasePositionAndOrientation(o.body) for o in env.objects]
     digest.update(state.tobytes() + np.array([p + q for p, q in poses]).tobytes())
-    for action in of.exploring_actions(np.random.default_rng(seed), steps):
+    for action in bench.exploring_actions(np.random.default_rng(seed), steps):
         state, _, done, _, _ = env.step(action)
         digest.update(state.tobytes())
         if done:
@@ -662,7 +662,7 @@ def test_vector_env_over_worker_processes():
     try:
         obs, info = envs.reset(seed=0)
         assert obs.shape == (2, 71)
-        obs, reward, done, truncated, info = envs.step(of.exploring_actions(np.random.default_rng(0), 2))
+        obs, reward, done, truncated, info = envs.step(bench.exploring_actions(np.random.default_rng(0), 2))
         assert obs.shape == (2, 71) and reward.shape == (2,)
     finally:
         envs.close()
