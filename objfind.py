@@ -304,8 +304,8 @@ LAYER_SLACK = 1e-3   # fuse_view: slack (pixels x m, or m) on the layers it visi
 
 
 def vector_norm(x: np.ndarray) -> np.ndarray:
-    """Lengths of (..., 3) vectors: np.linalg.norm's sum in its order, bit for bit, a quarter of its time (its
-    reduce over a last axis of 3 is slow)."""
+    """Lengths of (..., 3) vectors: np.linalg.norm's sums in its order, in a quarter of its time (its reduce
+    over a last axis of 3 is slow)."""
     return np.sqrt(x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2])
 
 
@@ -568,8 +568,8 @@ def column_bins(u: np.ndarray, v: np.ndarray, crop_m: float) -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True)
 def pool_columns(maps: np.ndarray, bins: np.ndarray) -> np.ndarray:
-    """(MAPS, BINS) float64 sums of (MAPS, columns) maps over each bin's columns, added in column order (bit
-    for bit np.bincount's sums, without its index array); columns in bin BINS, outside the crop, are dropped."""
+    """(MAPS, BINS) float64 sums of (MAPS, columns) maps over each bin's columns, added in column order as
+    np.bincount adds them, without its index array; columns in bin BINS, outside the crop, are dropped."""
     pooled = np.zeros((maps.shape[0], BINS))
     for c in range(maps.shape[1]):
         if bins[c] < BINS:
@@ -1212,8 +1212,8 @@ def floor_half_m(cfg: Settings) -> float:
 def draw_floor(rgb: np.ndarray, depth_m: np.ndarray, T_world_camera: np.ndarray, camera: Camera,
                half_m: float) -> None:
     """Draw the floor (z = 0, |x|, |y| <= half_m) into the pixels a render left empty, in place. It has no
-    visual shape: TinyRenderer shades it in one colour, yet rasterising it took half of every wrist view; a
-    ray meeting a plane is one division per pixel."""
+    visual shape: TinyRenderer would shade it in one colour at the cost of half a wrist view, where a ray
+    meeting a plane is one division per pixel."""
     v, u = np.nonzero(depth_m == 0)
     K, R, origin = camera.K, T_world_camera[:3, :3], T_world_camera[:3, 3]
     ray = R @ np.stack([(u + 0.5 - K[0, 2]) / K[0, 0], (v + 0.5 - K[1, 2]) / K[1, 1], np.ones(len(u))])
@@ -3025,8 +3025,7 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
 ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
 WORLD_REVISION = 7   # of the simulated world and the agents: raised by every change that alters the episodes
-                     # of a seed (2: mesh models as hulls, placed resting; scenes settle at 120 Hz; one 20 % rule;
-                     # 6: a new Bullet world per scene; 7: the floor drawn by draw_floor, primitives placed at rest)
+                     # of a seed (the model card says what each revision changed)
 
 
 def parse_bool(text: str) -> bool:
