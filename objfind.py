@@ -2277,13 +2277,15 @@ def check_fields(settings, ranges: dict, default: str) -> None:
         value, kind, interval = getattr(settings, field.name), field_kind(field), ranges.get(field.name, default)
         values = value if kind == "tuple" and isinstance(value, tuple) else (value,)
         number = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
-        must = (("True or False" if not isinstance(value, bool) else "") if kind == "bool" else
-                "a whole number" if kind == "int" and not (isinstance(value, int) and not isinstance(value, bool))
-                else f"{len(field.default)} numbers" if kind == "tuple" and len(values) != len(field.default) else
-                f"in {interval}" if not (number and np.all(np.isfinite(values))
-                                         and all(in_interval(v, interval) for v in values)) else "")
-        if must:
-            raise ValueError(f"{field.name}={value!r}: it must be {must}")
+        if kind == "bool" and not isinstance(value, bool):
+            raise ValueError(f"{field.name}={value!r}: it must be True or False")
+        if kind == "int" and not (isinstance(value, int) and not isinstance(value, bool)):
+            raise ValueError(f"{field.name}={value!r}: it must be a whole number")
+        if kind == "tuple" and len(values) != len(field.default):
+            raise ValueError(f"{field.name}={value!r}: it must be {len(field.default)} numbers")
+        if kind != "bool" and not (number and np.all(np.isfinite(values))
+                                   and all(in_interval(v, interval) for v in values)):
+            raise ValueError(f"{field.name}={value!r}: it must be in {interval}")
 
 
 def checked_settings(task: str, overrides: dict | None = None) -> Settings:
