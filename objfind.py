@@ -12,29 +12,15 @@ training runs, evaluation and Table II, the demo, and the command line (train, e
 """
 from __future__ import annotations
 
-import argparse
-import copy
-import csv
-import functools
-import hashlib
-import importlib.metadata
-import itertools
-import json
-import multiprocessing
-import os
-import platform
-import re
-import shlex
-import signal
-import sys
-import threading
-import time
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 import dataclasses
+import functools
+import itertools
+import os
+import re
+import sys
 from dataclasses import dataclass
-from typing import ClassVar
 from pathlib import Path
+from typing import ClassVar
 
 # The per-step linear algebra is tiny: BLAS threads would only fight the worker processes for cores.
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -47,7 +33,6 @@ import numpy as np
 import pybullet_data
 import torch
 from torch import nn
-from tqdm import tqdm
 
 
 sys.stderr.flush()
@@ -274,6 +259,8 @@ class PPOSettings:
     adam_eps: float = 1e-5             # Adam's epsilon, as in OpenAI Baselines' PPO2
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
+    entropy_end_ratio: float = 1.0     # the entropy bonus and the learning rate go linearly over the run's
+    learning_rate_end_ratio: float = 1.0   # --steps to these shares of their values (1: constant; `scheduled`)
 
 
 # ================================================================================================
@@ -748,10 +735,10 @@ class Searcher:
 
     def observe(self, depth_m: np.ndarray, T_world_depth: np.ndarray, detections: np.ndarray | None = None,
                 rgb: np.ndarray | None = None) -> int:
-        """Fuse one view: (H, W) depth in metres along z (0: no return) and the detector's scores in [0, 1]
-        over the RGB image, or that (H', W', 3) image for our colour detector. Returns the voxels seen first."""
-        if detections is None:
-            detections = detect_target(rgb)
+        """Fuse one view: (H, W) depth in metres along z and the detector's scores in [0, 1] over the RGB image,
+        or that (H', W', 3) image for our colour detector. A depth that is not a number in the camera's range
+        (0, NaN, inf: how drivers mark no return) is no return. Returns the voxels seen first."""
+        depth_m, detections = checked_view(self.rig, depth_m, T_world_depth, detections, rgb)
         rgb_outline = None
         if not self.rig.one_camera:   # the detections' outline in the RGB image travels with them, in one mapping
             both = self.rig.detections_in_depth_image(
@@ -1102,9 +1089,11 @@ class ArmSearch:
     def __init__(self, searcher: Searcher, agent, T_base_workspace: np.ndarray | None = None,
                  target_area_m2: float | None = None):
         self.searcher, self.agent = searcher, agent
-        self.T_base_workspace = T_base_workspace
-        self.T_workspace_base = None if T_base_workspace is None else np.linalg.inv(T_base_workspace)
-        searcher.reset(searcher.nominal_target_area_m2 if target_area_m2 is None else target_area_m2)
+        self.T_base_workspace = None if T_base_workspace is None else checked_pose(T_base_workspace, "T_base_workspace")
+        self.T_workspace_base = None if T_base_workspace is None else np.linalg.inv(self.T_base_workspace)
+        if target_area_m2 is not None and not (isinstance(target_area_m2, (int, float)) and 0 < target_area_m2 < 1):
+            raise ValueError(f"target_area_m2={target_area_m2!r}: a target's surface in m^2 is in (0, 1)")
+        searcher.reset(searcher.nominal_target_area_m2 if target_area_m2 is None else float(target_area_m2))
         self.frames = 0
 
     def in_workspace(self, T_base: np.ndarray) -> np.ndarray:
@@ -1112,19 +1101,23 @@ class ArmSearch:
 
     def step(self, depth_m: np.ndarray, T_base_tool: np.ndarray, rgb: np.ndarray | None = None,
              detections: np.ndarray | None = None, T_base_depth: np.ndarray | None = None) -> tuple:
-        """Fuse one frame (depth in metres, 0: no return; the RGB image or its detection scores) taken with the
-        gripper at T_base_tool, and decide: (the action, the next T_base_tool, or None when the agent stops).
-        The depth camera's pose defaults to the gripper's through the rig's hand-eye calibration."""
-        T_tool = self.in_workspace(T_base_tool)
-        T_depth = self.searcher.camera_pose(T_tool) if T_base_depth is None else self.in_workspace(T_base_depth)
+        """Fuse one frame (depth in metres; the RGB image or its detection scores) taken with the gripper at
+        T_base_tool, and decide: (the action, the next T_base_tool, or None when the agent stops). The depth
+        camera's pose defaults to the gripper's through the rig's hand-eye calibration. The goal is finite, in
+        the box and at most one step away (`checked_goal`), or a ValueError says what was wrong."""
+        T_tool = checked_tool_pose(self.searcher, self.in_workspace(checked_pose(T_base_tool, "T_base_tool")))
+        T_depth = (self.searcher.camera_pose(T_tool) if T_base_depth is None
+                   else self.in_workspace(checked_pose(T_base_depth, "T_base_depth")))
         self.searcher.observe(depth_m, T_depth, detections=detections, rgb=rgb)
         if self.frames == 0:
             self.agent.reset(self.searcher, T_tool)
         self.frames += 1
-        action = self.agent.act(self.searcher, T_tool)
+        action = checked_action(self.agent.act(self.searcher, T_tool))
         if action[ACTION_MOVES] > 0:
             return action, None
-        T_goal = self.searcher.goal_pose(T_tool, action)
+        if outside_box_m(self.searcher, T_tool) > 0:   # outside by at most a step: back to the nearest pose in the box
+            action[:3] = 0.0
+        T_goal = checked_goal(self.searcher, T_tool, self.searcher.goal_pose(T_tool, action))
         return action, T_goal if self.T_base_workspace is None else self.T_base_workspace @ T_goal
 
 
@@ -1181,7 +1174,6 @@ _box_lo = np.min([np.subtract(c, h) for h, c in GRIPPER_BOXES], 0)
 _box_hi = np.max([np.add(c, h) for h, c in GRIPPER_BOXES], 0)
 GRIPPER_CORNERS = np.round([[x, y, z] for x in (_box_lo[0], _box_hi[0]) for y in (_box_lo[1], _box_hi[1])
                             for z in (_box_lo[2], _box_hi[2])], 9)   # (8, 3) corners of the boxes' bounding box
-GRIPPER_RGBA = (0.25, 0.25, 0.28, 1)   # the gripper as the outside view paints it
 
 
 def render_rgbd(sim, T_world_camera: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -1283,34 +1275,10 @@ def mounted_rig(believed: Rig, rng: np.random.Generator, cfg: Settings) -> Rig:
 
 
 # A box's 8 corners, indexed x * 4 + y * 2 + z over the signs (-, +), and its 6 faces as corner cycles
-# whose normal (second - first) x (fourth - first) points outward; paint_gripper and box_mesh share them.
+# whose normal (second - first) x (fourth - first) points outward; box_mesh and the demo's gripper share them.
 BOX_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
 BOX_FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
 
-
-def paint_gripper(rgb: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray,
-                  T_world_tool: np.ndarray) -> np.ndarray:
-    """The gripper's boxes painted into a rendered view: front faces, far to near, shaded by their slant,
-    only where the rendered scene is farther than the face (a per-face depth test is enough here)."""
-    out = rgb.copy()
-    faces = []
-    for half, centre in GRIPPER_BOXES:
-        world = (BOX_SIGNS * half + centre) @ T_world_tool[:3, :3].T + T_world_tool[:3, 3]
-        cam = (world - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]     # R^T (p - t), row-wise
-        for face in BOX_FACES:
-            quad = cam[face]
-            normal = np.cross(quad[1] - quad[0], quad[3] - quad[0])
-            if np.dot(normal, quad.mean(0)) >= 0 or (quad[:, 2] <= MIN_PROJECTION_Z_M).any():   # faces away, behind
-                continue
-            faces.append((quad[:, 2].mean(), quad, abs(normal[2]) / np.linalg.norm(normal)))
-    mask = np.zeros(depth.shape, np.uint8)
-    for z, quad, facing in sorted(faces, key=lambda f: -f[0]):
-        uv = (quad @ K.T)[:, :2] / quad[:, 2:]
-        mask[:] = 0
-        cv2.fillConvexPoly(mask, np.round(uv).astype(np.int32), 1)
-        paint = (mask > 0) & ((depth == 0) | (depth > z))
-        out[paint] = (255 * np.array(GRIPPER_RGBA[:3]) * (0.6 + 0.6 * facing)).clip(0, 255).astype(np.uint8)
-    return out
 
 
 # ================================================================================================
@@ -1798,7 +1766,6 @@ def build_scene(sim, cfg: Settings, scene: str, rng: np.random.Generator) -> Sce
 
 SWEEP_MARGIN_M = 0.005  # the box swept by one move, grown by this before asking what it touches
 REACH_CHECK_S = 1 / 60   # simulated time between checks of the gripper's progress towards an action's pose
-OUTSIDE_VIEW = (320, 240)   # width, height of render() and of each demo panel
 
 
 @dataclass(frozen=True, eq=False)
@@ -1844,7 +1811,11 @@ class ObjectFindingEnv(gym.Env):
     def step(self, action):
         """Sec. III-B's step: the searcher turns the action into a pose; the world moves the gripper there,
         pushing, renders, detects and judges; the searcher fuses the view and encodes the state."""
-        action = self.checked_action(action)
+        self.check_open()
+        if getattr(self, "episode_over", True):
+            raise RuntimeError("step() needs reset() first: " + ("the episode has ended" if hasattr(self, "steps")
+                                                                 else "no episode has started"))
+        action = checked_action(action)   # nothing of the env changes before the action passed
         self.steps += 1
         reward = -self.cfg.time_penalty
         if action[ACTION_MOVES] > 0:   # terminate: claim the target was found, or that there is none
@@ -1931,26 +1902,6 @@ class ObjectFindingEnv(gym.Env):
         return dict(target_present=self.target_present, target_seen_fraction=seen,
                     target_observed=target_observed(seen, self.cfg.seen_threshold),
                     explored_fraction=self.searcher.volume.explored_fraction(), steps=self.steps)
-
-    def checked_action(self, action) -> np.ndarray:
-        """The action as (6,) float64 clipped to the Box, or a ValueError naming what is wrong with it;
-        nothing of the env changes before the action passed, so the next good action works."""
-        self.check_open()
-        if getattr(self, "episode_over", True):
-            raise RuntimeError("step() needs reset() first: " + ("the episode has ended" if hasattr(self, "steps")
-                                                                 else "no episode has started"))
-        try:
-            action = np.asarray(action, np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"an action must be {ACTION_SIZE} numbers, not {action!r}") from None
-        if action.shape != (ACTION_SIZE,):
-            raise ValueError(f"an action has shape ({ACTION_SIZE},) ({', '.join(ACTION_NAMES)}), "
-                             f"not {action.shape}")
-        bad = np.flatnonzero(~np.isfinite(action))
-        if len(bad):
-            raise ValueError(f"action component {ACTION_NAMES[bad[0]]} (index {bad[0]}) is {action[bad[0]]}: "
-                             "every component must be finite")
-        return np.clip(action, -1.0, 1.0)
 
     # --- a new scene -----------------------------------------------------------------------------
 
@@ -2060,22 +2011,7 @@ class ObjectFindingEnv(gym.Env):
     # --- pictures ---------------------------------------------------------------------------------
 
     def render(self):
-        return self.outside_view() if self.render_mode == "rgb_array" else None
-
-    def outside_view(self, width: int = OUTSIDE_VIEW[0], height: int = OUTSIDE_VIEW[1]) -> np.ndarray:
-        """The scene from a fixed oblique camera with the gripper painted in, (H, W, 3) uint8. Painted,
-        not drawn by a body: moving any body reorders Bullet's broadphase and so changes the episode."""
-        eye = np.array([0.0, -1.3, 1.3]) * self.cfg.workspace_m
-        forward = np.array([0.0, 0.0, 0.12 * self.cfg.workspace_m]) - eye
-        forward /= np.linalg.norm(forward)
-        right = np.cross(forward, [0.0, 0.0, 1.0])
-        right /= np.linalg.norm(right)
-        T_world_camera = np.eye(4)
-        T_world_camera[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)   # OpenCV: x right, y down
-        T_world_camera[:3, 3] = eye
-        K = np.array([[height * 1.1, 0, width / 2], [0, height * 1.1, height / 2], [0, 0, 1]])
-        rgb, depth = self._render_world(T_world_camera, Camera(width, height, K, 0.05, 4 * self.cfg.workspace_m))
-        return paint_gripper(rgb, depth, T_world_camera, K, self.gripper_pose())
+        return outside_view(self) if self.render_mode == "rgb_array" else None   # the demo's picture
 
     def __reduce__(self):
         raise TypeError("an ObjectFindingEnv holds a live physics world and cannot be copied or pickled; make "
@@ -2116,6 +2052,12 @@ def gae(rewards, values, dones, last_value, gamma: float, lam: float):
     return advantages, advantages + values
 
 
+def clipped_surrogate_loss(ratio: torch.Tensor, advantages: torch.Tensor, clip: float) -> torch.Tensor:
+    """-L^CLIP (Schulman et al. 2017, eq. 7): the ratio's gain is cut off once it leaves [1 - clip, 1 + clip]
+    in the advantage's favour, its loss never."""
+    return -torch.min(ratio * advantages, ratio.clamp(1 - clip, 1 + clip) * advantages).mean()
+
+
 def ppo_update(model: ActorCritic, optimizer, batch: dict, ppo: PPOSettings, generator) -> dict:
     """One PPO update (Schulman et al. 2017, eq. 7 and 9): epochs over shuffled minibatches of the clipped
     surrogate, a value loss and an entropy bonus, advantages standardised per batch; the log's statistics."""
@@ -2130,8 +2072,7 @@ def ppo_update(model: ActorCritic, optimizer, batch: dict, ppo: PPOSettings, gen
             logp, entropy = model.evaluate(batch["obs"][i], batch["raw"][i])
             log_ratio = logp - batch["logp"][i]
             ratio = log_ratio.exp()
-            # L^CLIP: the ratio's gain is cut off once it leaves [1 - clip, 1 + clip] in the advantage's favour
-            policy_loss = -torch.min(ratio * adv[i], ratio.clamp(1 - ppo.clip, 1 + ppo.clip) * adv[i]).mean()
+            policy_loss = clipped_surrogate_loss(ratio, adv[i], ppo.clip)
             value_loss = 0.5 * (model.value(batch["obs"][i]) - batch["returns"][i]).pow(2).mean()
             loss = policy_loss + ppo.value_coef * value_loss - ppo.entropy_coef * entropy.mean()
             optimizer.zero_grad()
@@ -2186,6 +2127,14 @@ def derived_seed(*key: int) -> int:
     return int(np.random.SeedSequence(list(key)).generate_state(1)[0])
 
 
+def scheduled(ppo: PPOSettings, optimizer, done_share: float) -> PPOSettings:
+    """The settings of an update `done_share` of the way through a run: the entropy bonus and Adam's learning
+    rate moved linearly from their values towards their *_end_ratio shares of them."""
+    for group in optimizer.param_groups:
+        group["lr"] = ppo.learning_rate * (1 + (ppo.learning_rate_end_ratio - 1) * done_share)
+    return dataclasses.replace(ppo, entropy_coef=ppo.entropy_coef * (1 + (ppo.entropy_end_ratio - 1) * done_share))
+
+
 def ppo_iteration(model: ActorCritic, optimizer, ppo: PPOSettings, collect, seed: int, update: int) -> tuple:
     """One PPO iteration, as CleanRL lays it out: collect, advantages, update, statistics. `collect(weights,
     update)` gives one `collect_rollout` per stream; returns the log's row and the finished episodes."""
@@ -2215,9 +2164,28 @@ def ppo_iteration(model: ActorCritic, optimizer, ppo: PPOSettings, collect, seed
 
 
 # ================================================================================================
-# The paper's system ends here. What follows is the harness: files, training runs, evaluation and
-# Table II, the demo, bench, soak and the command line.
+# The paper's system ends here. What follows is the harness: input checks, files, training runs,
+# evaluation and Table II, the demo and the command line. The scripts in tools/ import the file.
 # ================================================================================================
+
+import argparse
+import copy
+import csv
+import hashlib
+import importlib.metadata
+import json
+import multiprocessing
+import platform
+import shlex
+import signal
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+
+import filelock
+from tqdm import tqdm
+
 
 # ================================================================================================
 # Input: what a user or a file hands the system (settings, checkpoints) is checked here, once.
@@ -2235,7 +2203,7 @@ SETTINGS_RANGES = {
     "voxels_per_side": "[8, 400]", "max_weight": "(0, inf)", "crop_m": "(0, inf)", "max_step_m": "(0, inf)",
     "max_turn_rad": "(0, inf)", "noise_rate": "(0, inf)", "false_positive_share": "[0, 1]",
     "gnbv_samples": "[1, 1000]", "gnbv_explored_to_stop": "(0, 1]", "seen_threshold": "(0, 1]",
-    "objects_per_pile_dense": "[1, inf)", "object_size_m": "(0, inf)", "object_mass_kg": "(0, inf)",
+    "objects_per_pile_dense": "[1, inf)", "object_mass_kg": "(0, inf)",
     "gripper_mass_kg": "(0, inf)", "variable_scale": "(0, inf)", "image_width": "[8, 1024]",
     "image_height": "[8, 1024]", "fov_y_deg": "(0, 170]", "depth_width": "[0, 1024]", "depth_height": "[0, 1024]",
     "depth_fov_y_deg": "[0, 170]", "rgb_offset_m": "[-0.2, 0.2]", "tof_noise_ratio": "[0, 0.2]",
@@ -2250,12 +2218,15 @@ SETTINGS_RANGES = {
     "pile_layers": "[1, 20]", "pile_spacing_ratio": "(0, inf)", "pile_overlap_chance": "[0, 1]",
     "exploration_normaliser": "(0, inf)", "surface_points": "[1, 100000]", "seen_min_cos": "[0, 0.99]",
     "detection_threshold": "(0, 1]", "outline_pixel_share": "[0, 1]", "gnbv_rays": "[1, inf)",
-    "gnbv_min_detections": "[1, inf)", "gnbv_stall_steps": "[1, inf)", "ges_tries_per_node": "[1, inf)"}
+    "gnbv_min_detections": "[1, inf)", "gnbv_stall_steps": "[1, inf)", "ges_tries_per_node": "[1, inf)",
+    "state_voxel_m": "[0.001, 1]", "object_size_m": "[0.005, 1]"}   # a cell or an object finer costs memory as 1/v^3
 PPO_RANGES = {
     "hidden": "[1, 1024]", "batch_steps": "[1, 1000000]", "epochs": "[1, 1000]", "minibatch": "[1, inf)",
     "gamma": "(0, 1]", "entropy_coef": "[0, inf)", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
     "learning_rate": "(0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "reward_scale": "(0, inf)",
-    "init_terminate_prob": "(0, 1)", "adam_eps": "(0, inf)", "obs_clip": "(0, inf)", "checkpoint_every": "[1, inf)"}
+    "init_terminate_prob": "[1e-6, 0.999999]", "init_log_std": "[-10, 2]", "adam_eps": "(0, inf)",
+    "obs_clip": "(0, inf)", "checkpoint_every": "[1, inf)", "entropy_end_ratio": "[0, 10]",
+    "learning_rate_end_ratio": "[0, 10]"}
 
 
 def in_interval(value: float, interval: str) -> bool:
@@ -2277,15 +2248,16 @@ def check_fields(settings, ranges: dict, default: str) -> None:
         value, kind, interval = getattr(settings, field.name), field_kind(field), ranges.get(field.name, default)
         values = value if kind == "tuple" and isinstance(value, tuple) else (value,)
         number = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+        said = f"{field.name}={repr(value)[:40]}{'...' * (len(repr(value)) > 40)}: it must be"
         if kind == "bool" and not isinstance(value, bool):
-            raise ValueError(f"{field.name}={value!r}: it must be True or False")
+            raise ValueError(f"{said} True or False")
         if kind == "int" and not (isinstance(value, int) and not isinstance(value, bool)):
-            raise ValueError(f"{field.name}={value!r}: it must be a whole number")
+            raise ValueError(f"{said} a whole number")
         if kind == "tuple" and len(values) != len(field.default):
-            raise ValueError(f"{field.name}={value!r}: it must be {len(field.default)} numbers")
-        if kind != "bool" and not (number and np.all(np.isfinite(values))
-                                   and all(in_interval(v, interval) for v in values)):
-            raise ValueError(f"{field.name}={value!r}: it must be in {interval}")
+            raise ValueError(f"{said} {len(field.default)} numbers")
+        if kind != "bool" and not (number and all(isinstance(v, int) or np.isfinite(v) for v in values)
+                                   and all(in_interval(v, interval) for v in values)):   # an int of 400 digits is one
+            raise ValueError(f"{said} in {interval}")
 
 
 def checked_settings(task: str, overrides: dict | None = None) -> Settings:
@@ -2328,6 +2300,110 @@ def checked_settings(task: str, overrides: dict | None = None) -> Settings:
     return cfg
 
 
+def checked_action(action) -> np.ndarray:
+    """An env action as (6,) float64 clipped to the Box, or a ValueError naming what is wrong with it."""
+    try:
+        action = np.asarray(action, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"an action must be {ACTION_SIZE} numbers, not {action!r}") from None
+    if action.shape != (ACTION_SIZE,):
+        raise ValueError(f"an action has shape ({ACTION_SIZE},) ({', '.join(ACTION_NAMES)}), not {action.shape}")
+    bad = np.flatnonzero(~np.isfinite(action))
+    if len(bad):
+        raise ValueError(f"action component {ACTION_NAMES[bad[0]]} (index {bad[0]}) is {action[bad[0]]}: "
+                         "every component must be finite")
+    return np.clip(action, -1.0, 1.0)
+
+
+POSE_TOLERANCE = 1e-3   # a rigid transform's rotation is orthonormal to this (float32 poses pass)
+
+
+def checked_pose(T, name: str) -> np.ndarray:
+    """A (4, 4) finite rigid transform as float64 (a rotation and a translation), or a ValueError naming it."""
+    try:
+        T = np.array(T, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 4 x 4 array of numbers") from None
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f"{name} must be a finite 4 x 4 transform, not of shape {T.shape} with "
+                         f"{np.size(T) - np.isfinite(T).sum()} values that are not finite")
+    R = T[:3, :3]
+    if (np.abs(R @ R.T - np.eye(3)).max() > POSE_TOLERANCE or np.linalg.det(R) < 0
+            or np.abs(T[3] - [0, 0, 0, 1]).max() > POSE_TOLERANCE):
+        raise ValueError(f"{name} is not a rigid transform (its rotation is not orthonormal, or its last row not "
+                         "0, 0, 0, 1)")
+    return T
+
+
+def checked_view(rig: Rig, depth_m, T_world_depth, detections, rgb) -> tuple[np.ndarray, np.ndarray]:
+    """A wrist view as the volume fuses it: the depth camera's (H, W) metres, each pixel that is not a number
+    in its range (0, NaN, inf, negative, beyond far) as no return (0), and the RGB camera's (H', W') scores
+    in [0, 1] or (H', W', 3) uint8 image; a ValueError for a view of another shape, a score that is not in
+    [0, 1], or a pose that is not rigid."""
+    depth_shape, rgb_shape = (rig.depth.height, rig.depth.width), (rig.rgb.height, rig.rgb.width)
+    depth_m = np.asarray(depth_m)
+    if depth_m.shape != depth_shape or depth_m.dtype.kind not in "fiu":
+        raise ValueError(f"depth_m must be the depth camera's {depth_shape} array of metres, not {depth_m.dtype} "
+                         f"{depth_m.shape}")
+    with np.errstate(invalid="ignore"):   # NaN is in no range
+        in_range = (depth_m >= rig.depth.near_m) & (depth_m <= rig.depth.far_m)
+    depth_m = np.where(in_range, depth_m, 0).astype(np.float32)
+    checked_pose(T_world_depth, "the depth camera's pose")
+    if (detections is None) == (rgb is None):
+        raise ValueError("give the RGB image (rgb=) or its detection scores (detections=), one of the two")
+    if rgb is not None:
+        rgb = np.asarray(rgb)
+        if rgb.shape != rgb_shape + (3,) or rgb.dtype != np.uint8:
+            raise ValueError(f"rgb must be the RGB camera's {rgb_shape + (3,)} uint8 image, not {rgb.dtype} "
+                             f"{rgb.shape}")
+        return depth_m, detect_target(rgb)
+    detections = np.asarray(detections)
+    if detections.shape != rgb_shape or detections.dtype.kind not in "fiub":
+        raise ValueError(f"detections must be the RGB camera's {rgb_shape} scores, not {detections.dtype} "
+                         f"{detections.shape}")
+    if not ((detections >= 0) & (detections <= 1)).all():   # NaN fails both
+        raise ValueError("every detection score must be a number in [0, 1]")
+    return depth_m, detections.astype(np.float32, copy=False)
+
+
+def outside_box_m(searcher: Searcher, T_world_tool: np.ndarray) -> float:
+    """How far the gripper lies outside the box the searcher moves in (|x|, |y| <= workspace_m / 2, 0 <= z <=
+    the ceiling), in metres; 0 inside."""
+    half, (x, y, z) = searcher.workspace_m / 2, T_world_tool[:3, 3]
+    return float(np.linalg.norm([max(abs(x) - half, 0), max(abs(y) - half, 0), max(-z, z - searcher.ceiling_m, 0)]))
+
+
+def checked_tool_pose(searcher: Searcher, T_world_tool: np.ndarray) -> np.ndarray:
+    """The gripper's pose, if it lies within a step of the box the searcher moves in, pointing down as its yaw
+    and roll say: farther out means a wrong T_base_workspace or tool frame, and a goal would leap into the box."""
+    step, turn, outside_m = searcher.max_step_m, searcher.max_turn_rad, outside_box_m(searcher, T_world_tool)
+    yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
+    if outside_m > step or abs(roll) > searcher.max_roll_rad + turn:
+        raise ValueError(f"the gripper at {np.round(T_world_tool[:3, 3], 3).tolist()} m, roll {roll:.2f} rad in the "
+                         f"workspace frame is {outside_m:.3f} m outside the searched box (|x|, |y| <= "
+                         f"{searcher.workspace_m / 2:g}, 0 <= z <= {searcher.ceiling_m:g}, |roll| <= "
+                         f"{searcher.max_roll_rad:g}), more than a step ({step:g} m): check T_base_workspace")
+    off = gripper_rotation(yaw, roll).T @ T_world_tool[:3, :3]   # pitch: a goal has none, so it must be small
+    if np.arccos(np.clip((np.trace(off) - 1) / 2, -1, 1)) > turn:
+        raise ValueError("the gripper's approach axis is more than a step's turn from pointing down at the yaw and "
+                         "roll it has (README, Frames): check the tool frame's axes")
+    return T_world_tool
+
+
+def checked_goal(searcher: Searcher, T_world_tool: np.ndarray, T_goal: np.ndarray) -> np.ndarray:
+    """The goal of one step as an arm may take it: finite, in the box, at most one action's longest move away
+    (sqrt(3) max_step_m: every axis at its limit) and max_turn_rad in roll and yaw; else a ValueError."""
+    tolerance, xyz = 1e-9, T_goal[:3, 3]
+    (yaw, roll), (goal_yaw, goal_roll) = yaw_roll_of(T_world_tool[:3, :3]), yaw_roll_of(T_goal[:3, :3])
+    turns = abs(goal_roll - roll), abs((goal_yaw - yaw + np.pi) % (2 * np.pi) - np.pi)
+    reach_m = np.sqrt(3) * searcher.max_step_m + tolerance
+    if not (np.isfinite(T_goal).all() and outside_box_m(searcher, T_goal) <= tolerance and max(turns) <=
+            searcher.max_turn_rad + tolerance and np.linalg.norm(xyz - T_world_tool[:3, 3]) <= reach_m):
+        raise ValueError(f"no goal: the step from the gripper at {np.round(T_world_tool[:3, 3], 3).tolist()} would end "
+                         f"at {np.round(xyz, 3).tolist()}, outside the box or beyond a step")
+    return T_goal
+
+
 def ppo_settings(values: dict) -> PPOSettings:
     """PPOSettings from NAME: VALUE pairs (a checkpoint's, or --set), each checked, or a one-line UsageError."""
     names = [field.name for field in dataclasses.fields(PPOSettings)]
@@ -2353,7 +2429,8 @@ RUN_FIELDS = dict(   # what a checkpoint of a run adds (the first five always), 
     seed=lambda v: isinstance(v, int) and 0 <= v <= MAX_SEED,
     rollout_streams=lambda v: isinstance(v, int) and 1 <= v <= MAX_STREAMS,
     task=lambda v: v in TASKS, scene=lambda v: v in SCENES,
-    world=lambda v: isinstance(v, dict) and set(v) <= {f.name for f in dataclasses.fields(Settings)})
+    world=lambda v: isinstance(v, dict) and set(v) <= {f.name for f in dataclasses.fields(Settings)},
+    schedule_steps=lambda v: isinstance(v, int) and v >= 1)
 MAX_CHECKPOINT_BYTES = 64 * 2 ** 20   # the largest network PPOSettings allows, with Adam's state, is about 27 MB
 MAX_STREAMS = 4096                    # rollout streams of a run
 DEFAULT_STREAMS = 10                  # a new run's: 500 env steps each of the paper's 5000-step batch, enough
@@ -2385,15 +2462,10 @@ def read_checkpoint(path: Path, run: bool = False, state_size: int | None = None
             raise ValueError(f"a state of {checkpoint['obs_dim']!r} values")
         if not isinstance(checkpoint["settings"], dict) or not isinstance(checkpoint["model"], dict):
             raise ValueError("settings or model is not a dictionary")
-        expected = ActorCritic(checkpoint["obs_dim"], ppo_settings(checkpoint["settings"])).state_dict()
-        for name, tensor in expected.items():
-            held = checkpoint["model"].get(name)
-            if not isinstance(held, torch.Tensor) or held.shape != tensor.shape or held.dtype != tensor.dtype:
-                raise ValueError(f"{name} is {'missing' if held is None else 'of another shape or type'}")
-        if set(checkpoint["model"]) != set(expected):
-            raise ValueError(f"an unknown tensor {sorted(set(checkpoint['model']) - set(expected))[0]}")
-    except (UsageError, ValueError) as error:
-        raise UsageError(f"{str(path)!r} does not hold an objfind network: {error}") from None
+        ActorCritic(checkpoint["obs_dim"], ppo_settings(checkpoint["settings"])).load_state_dict(checkpoint["model"])
+    except (UsageError, ValueError, RuntimeError) as error:   # load_state_dict's first line is its title
+        reason = (str(error).splitlines()[1:] or [str(error)])[0].strip()
+        raise UsageError(f"{str(path)!r} does not hold an objfind network: {reason}") from None
     if not all(torch.isfinite(t).all() for t in checkpoint["model"].values() if t.is_floating_point()):
         raise UsageError(f"{str(path)!r} holds non-finite weights")
     if state_size is not None and checkpoint["obs_dim"] != state_size:
@@ -2407,53 +2479,47 @@ def read_checkpoint(path: Path, run: bool = False, state_size: int | None = None
     return checkpoint
 
 
-LOCK_NAME = ".objfind.lock"   # in an output folder while a run writes into it: its process id
-HELD_LOCKS: set = set()        # the locks this process holds, released when its command ends
-
-
-def lock_owner(lock: Path) -> int | None:
-    """The live process holding an output folder's lock, or None if it is free or its holder is gone."""
-    try:
-        pid = int(lock.read_text())
-        os.kill(pid, 0)            # no signal sent: only asks whether the process exists
-        return pid
-    except (OSError, ValueError):
-        return None
+LOCK_NAME = ".objfind.lock"   # the lock file of an output folder while a run writes into it
+HELD_LOCKS: dict = {}          # folder -> this process's lock on it, released when its command ends
 
 
 def writable_folder(path: Path, take_lock: bool = True) -> Path:
     """`path` as this run's output folder: made if missing (its parent must exist) and locked, so that a
     second run into it is refused. Taking the lock writes a file, which proves the folder can be written
-    (permission bits do not tell: root ignores them, a read-only filesystem does not)."""
+    (permission bits do not tell: root ignores them, a read-only filesystem does not); the system releases
+    it when the process ends, however it ends."""
     if path.exists() and not path.is_dir():
         raise UsageError(f"{str(path)!r} exists and is not a folder")
     if not path.parent.is_dir():
         raise UsageError(f"the parent of the output folder {str(path)!r} does not exist")
-    lock, mine = path / LOCK_NAME, path / f"{LOCK_NAME}.{os.getpid()}"
     try:
         path.mkdir(exist_ok=True)
-        owner = lock_owner(lock) if take_lock else os.getpid()   # a folder of run folders is not locked
-        if owner not in (None, os.getpid()):
-            raise UsageError(f"{str(path)!r} is being written by another objfind run (process {owner}): "
-                             "wait for it to end, or pick another output")
-        if owner is None:          # free, or left by a run that died: taken atomically, content and all
-            mine.write_text(str(os.getpid()))
-            lock.unlink(missing_ok=True)
-            try:
-                os.link(mine, lock)
-            finally:
-                mine.unlink()
-            HELD_LOCKS.add(lock)
-    except FileExistsError:
-        raise UsageError(f"{str(path)!r} was just taken by another objfind run: pick another output") from None
+        if take_lock and path.resolve() not in HELD_LOCKS:   # a folder of run folders is not locked
+            lock = filelock.FileLock(path / LOCK_NAME)
+            lock.acquire(timeout=0)
+            HELD_LOCKS[path.resolve()] = lock
+    except filelock.Timeout:
+        raise UsageError(f"{str(path)!r} is being written by another objfind run: wait for it to end, or pick "
+                         "another output") from None
     except OSError as error:
         raise UsageError(f"cannot write into {str(path)!r} ({error.strerror or error})") from None
     return path
 
 
+def locked_by_another(folder: Path) -> bool:
+    """Whether another process holds the folder's lock (asking takes it for a moment)."""
+    if folder.resolve() in HELD_LOCKS or not (folder / LOCK_NAME).exists():
+        return False
+    try:
+        filelock.FileLock(folder / LOCK_NAME).acquire(timeout=0).lock.release()
+        return False
+    except filelock.Timeout:
+        return True
+
+
 def release_locks() -> None:
-    for lock in [lock for lock in HELD_LOCKS if lock_owner(lock) == os.getpid()]:
-        lock.unlink(missing_ok=True)
+    for lock in HELD_LOCKS.values():
+        lock.release()
     HELD_LOCKS.clear()
 
 
@@ -2467,9 +2533,8 @@ def replace_atomically(path: Path, write) -> None:
         write(tmp)
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
-        owner = lock_owner(path.parent / LOCK_NAME)
-        if owner not in (None, os.getpid()):
-            raise OSError(f"another objfind run (process {owner}) took over the folder")
+        if locked_by_another(path.parent):
+            raise OSError("another objfind run took over the folder")
         os.replace(tmp, path)
     except (OSError, RuntimeError) as error:
         try:
@@ -2715,8 +2780,10 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
     batch is split into `streams` rollouts whatever serves them, so the weights do not depend on `workers`."""
     writable_folder(out_dir)
     ckpt_path, log_path = out_dir / "checkpoint.pt", out_dir / "log.csv"
+    schedule_steps = total_steps   # a run's schedule spans the --steps it started with
     if resume is not None:   # a run keeps the settings, seed and streams it started with
         ppo, seed, streams = ppo_settings(resume["settings"]), resume["seed"], resume.get("rollout_streams", workers)
+        schedule_steps = resume.get("schedule_steps", total_steps)
         meta = {**({"init": resume["init"]} if "init" in resume else {}), **(meta or {})}
     env = make_env()   # the single worker's env, or only asked for the observation size
     obs_dim = env.observation_space.shape[0]
@@ -2749,6 +2816,7 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
         return dict(format="objfind-ppo", model=copy.deepcopy(model.state_dict()),
                     optimizer=copy.deepcopy(optimizer.state_dict()), update=update, env_steps=env_steps,
                     wall_s=wall_s, seed=seed, obs_dim=obs_dim, settings=vars(ppo).copy(), rollout_streams=streams,
+                    schedule_steps=schedule_steps,
                     **(meta or {}))
 
     latest, saved_update, recent = None, update, []
@@ -2759,8 +2827,11 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
     try:
         while env_steps < total_steps:
             t0 = time.perf_counter()
-            row, episodes = ppo_iteration(model, optimizer, ppo, collect, seed, update)
-            update, env_steps, wall_s = update + 1, env_steps + row["env_steps"], wall_s + time.perf_counter() - t0
+            now = scheduled(ppo, optimizer, min(1.0, env_steps / schedule_steps))
+            row, episodes = ppo_iteration(model, optimizer, now, collect, seed, update)
+            update_s = time.perf_counter() - t0
+            steps_per_s = row["env_steps"] / update_s
+            update, env_steps, wall_s = update + 1, env_steps + row["env_steps"], wall_s + update_s
             latest = snapshot()
             row.update(update=update, env_steps=env_steps, wall_s=wall_s)
             log_rows.append({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
@@ -2771,7 +2842,7 @@ def train(make_env, out_dir: Path, total_steps: int, ppo: PPOSettings = PPOSetti
                 plot_learning_curve(log_rows, out_dir / "curve.png")
             recent = (recent + episodes)[-PROGRESS_EPISODES:]
             bar.update(min(env_steps, total_steps) - bar.n)
-            bar.set_postfix(steps_per_s=f"{row['env_steps'] / (time.perf_counter() - t0):.0f}",
+            bar.set_postfix(steps_per_s=f"{steps_per_s:.0f}",
                             success=f"{np.mean([e['success'] for e in recent]) if recent else 0:.2f}")
     except (KeyboardInterrupt, BrokenProcessPool, DeadWorker, FloatingPointError) as stop:
         if latest is not None and latest["update"] > saved_update:
@@ -3077,6 +3148,13 @@ def checked_episode(row: dict, first: dict | None) -> dict:
         raise ValueError("a negative seed or decision time")
     if not row["target_present"] and row["target_seen_fraction"] > 0:
         raise ValueError("a target seen in a scene without one")
+    horizon, threshold = TASKS[row["task"]].horizon, TASKS[row["task"]].seen_threshold
+    if row["target_present"] and row["success"] != (row["target_seen_fraction"] > threshold) and (
+            row["success"] or row["steps"] < horizon):   # before the horizon only the agent's stop ends an episode
+        raise ValueError(f"success {row['success']} with {row['target_seen_fraction']:.1%} of the target seen "
+                         f"in {row['steps']} steps: a stop succeeds exactly above {threshold:.0%}")
+    if not row["target_present"] and not row["success"] and row["steps"] < horizon:
+        raise ValueError("a failure without a target before the horizon (only running out of steps fails there)")
     if first and any(row[k] != first[k] for k in ORIGIN_FIELDS):
         raise ValueError("its origin (agent, task, scene, weights, rule, world, versions) differs from line 2's")
     return row
@@ -3168,7 +3246,49 @@ def table_markdown(cells: dict, episodes: int, versions: set) -> str:
 # Demo: pictures of an episode (outside, wrist camera, volume, state) to a PNG and an MP4.
 # ================================================================================================
 
-PANEL = OUTSIDE_VIEW   # width, height of one picture in the demo
+PANEL = (320, 240)   # width, height of render()'s outside view and of each picture in the demo
+GRIPPER_RGBA = (0.25, 0.25, 0.28, 1)   # the gripper as the outside view paints it
+
+
+def paint_gripper(rgb: np.ndarray, depth: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray,
+                  T_world_tool: np.ndarray) -> np.ndarray:
+    """The gripper's boxes painted into a rendered view: front faces, far to near, shaded by their slant,
+    only where the rendered scene is farther than the face (a per-face depth test is enough here)."""
+    out = rgb.copy()
+    faces = []
+    for half, centre in GRIPPER_BOXES:
+        world = (BOX_SIGNS * half + centre) @ T_world_tool[:3, :3].T + T_world_tool[:3, 3]
+        cam = (world - T_world_camera[:3, 3]) @ T_world_camera[:3, :3]     # R^T (p - t), row-wise
+        for face in BOX_FACES:
+            quad = cam[face]
+            normal = np.cross(quad[1] - quad[0], quad[3] - quad[0])
+            if np.dot(normal, quad.mean(0)) >= 0 or (quad[:, 2] <= MIN_PROJECTION_Z_M).any():   # faces away, behind
+                continue
+            faces.append((quad[:, 2].mean(), quad, abs(normal[2]) / np.linalg.norm(normal)))
+    mask = np.zeros(depth.shape, np.uint8)
+    for z, quad, facing in sorted(faces, key=lambda f: -f[0]):
+        uv = (quad @ K.T)[:, :2] / quad[:, 2:]
+        mask[:] = 0
+        cv2.fillConvexPoly(mask, np.round(uv).astype(np.int32), 1)
+        paint = (mask > 0) & ((depth == 0) | (depth > z))
+        out[paint] = (255 * np.array(GRIPPER_RGBA[:3]) * (0.6 + 0.6 * facing)).clip(0, 255).astype(np.uint8)
+    return out
+
+
+def outside_view(env: ObjectFindingEnv, width: int = PANEL[0], height: int = PANEL[1]) -> np.ndarray:
+    """The scene from a fixed oblique camera with the gripper painted in, (H, W, 3) uint8. Painted,
+    not drawn by a body: moving any body reorders Bullet's broadphase and so changes the episode."""
+    eye = np.array([0.0, -1.3, 1.3]) * env.cfg.workspace_m
+    forward = np.array([0.0, 0.0, 0.12 * env.cfg.workspace_m]) - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    T_world_camera = np.eye(4)
+    T_world_camera[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)   # OpenCV: x right, y down
+    T_world_camera[:3, 3] = eye
+    K = np.array([[height * 1.1, 0, width / 2], [0, height * 1.1, height / 2], [0, 0, 1]])
+    rgb, depth = env._render_world(T_world_camera, Camera(width, height, K, 0.05, 4 * env.cfg.workspace_m))
+    return paint_gripper(rgb, depth, T_world_camera, K, env.gripper_pose())
 
 
 def label(image: np.ndarray, text: str) -> np.ndarray:
@@ -3245,7 +3365,7 @@ def bins_panel(state: np.ndarray) -> np.ndarray:
 def demo_frame(env: ObjectFindingEnv, state: np.ndarray, text: str) -> np.ndarray:
     """The four pictures of one moment side by side, (240, 1280, 3) RGB."""
     searcher = env.searcher
-    return np.concatenate([label(env.outside_view(*PANEL), text),
+    return np.concatenate([label(outside_view(env, *PANEL), text),
                            wrist_panel(env.view.rgb, env.view.detections, searcher.detection_threshold),
                            volume_panel(searcher, env.gripper_pose()), bins_panel(state)], axis=1)
 
@@ -3333,36 +3453,22 @@ workers_arg = whole_number_arg(1, MAX_WORKERS, "the number of worker processes (
 steps_arg = whole_number_arg(1, MAX_STEPS, "the number of steps")
 
 
-def ppo_setting_arg(text: str) -> tuple[str, float]:
-    """NAME=VALUE for one PPOSettings field, e.g. entropy_coef=0.003, of the field's own type."""
-    name, _, value = text.partition("=")
-    defaults = vars(PPOSettings())
-    if name not in defaults:
-        raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE with NAME one of {', '.join(defaults)}")
-    try:
-        typed = type(defaults[name])(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{value!r} is not a {type(defaults[name]).__name__}") from None
-    try:
-        ppo_settings({name: typed})
-    except UsageError as error:
-        raise argparse.ArgumentTypeError(str(error)) from None
-    return name, typed
+def setting_arg(settings: type):
+    """An argparse type: NAME=VALUE for one field of a settings class, of the field's type (a tuple as comma-
+    separated numbers: sensor_error_scale=0,2); ranges are checked where the settings are made."""
+    kinds = {field.name: field_kind(field) for field in dataclasses.fields(settings)}
 
-
-def world_setting_arg(text: str) -> tuple:
-    """NAME=VALUE for one Settings field of the training world, e.g. tof_noise_ratio=0.01 or
-    sensor_error_scale=0,2 (a tuple as comma-separated numbers); its range is checked with the task's."""
-    name, _, value = text.partition("=")
-    kinds = {f.name: field_kind(f) for f in dataclasses.fields(Settings)}
-    if name not in kinds:
-        raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE with NAME a Settings field")
-    try:
-        typed = (tuple(float(v) for v in value.split(",")) if kinds[name] == "tuple" else
-                 parse_bool(value) if kinds[name] == "bool" else int(value) if kinds[name] == "int" else float(value))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{value!r} is not a {kinds[name]}") from None
-    return name, typed
+    def parse(text: str) -> tuple:
+        name, _, value = text.partition("=")
+        if name not in kinds:
+            raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE with NAME a {settings.__name__} field")
+        try:
+            typed = (tuple(float(v) for v in value.split(",")) if kinds[name] == "tuple" else parse_bool(value)
+                     if kinds[name] == "bool" else int(value) if kinds[name] == "int" else float(value))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{value!r} is not a {kinds[name]}") from None
+        return name, typed
+    return parse
 
 
 def default_task(agent: str) -> str:
@@ -3500,8 +3606,9 @@ def cmd_train(args) -> int:
         checked_settings(args.task, world)
     except ValueError as error:
         raise UsageError(f"--world: {error}") from None
-    writable_folder(out)
+    ppo = ppo_settings(dict(args.set or []))
     init = read_checkpoint(Path(args.init)) if args.init else None
+    writable_folder(out)
     meta = dict(task=args.task, scene=args.scene, **({"world": world} if world else {}))
     if init is not None:
         meta["init"] = (f"{Path(args.init).name} ({init.get('task', '?')}/{init.get('scene', '?')}, update "
@@ -3510,7 +3617,7 @@ def cmd_train(args) -> int:
               f"--workers {args.workers}")
     try:
         result = train(functools.partial(ObjectFindingEnv, args.task, args.scene, **world), out, args.steps,
-                       ppo_settings(dict(args.set or [])), workers=args.workers, seed=args.seed or 0,
+                       ppo, workers=args.workers, seed=args.seed or 0,
                        resume=run, meta=meta, init=init, fresh_terminate=args.fresh_terminate,
                        streams=args.streams or DEFAULT_STREAMS, ray_address=args.ray)
     except TrainingInterrupted as stop:
@@ -3567,9 +3674,9 @@ def build_parser() -> ArgumentParser:
     training.add_argument("--out", help="run folder: checkpoint.pt, log.csv, curve.png (default runs/TASK-SCENE)")
     training.add_argument("--resume", action="store_true",
                           help="continue the run in --out from its checkpoint, with the settings it started with")
-    training.add_argument("--set", type=ppo_setting_arg, action="append", metavar="NAME=VALUE",
+    training.add_argument("--set", type=setting_arg(PPOSettings), action="append", metavar="NAME=VALUE",
                           help="change a PPOSettings field for a new run (repeatable), e.g. entropy_coef=0.003")
-    training.add_argument("--world", type=world_setting_arg, action="append", metavar="NAME=VALUE",
+    training.add_argument("--world", type=setting_arg(Settings), action="append", metavar="NAME=VALUE",
                           help="change a Settings field of the training world for a new run (repeatable), e.g. "
                                "tof_noise_ratio=0.01 or sensor_error_scale=0,2 (weights/README.md)")
     training.add_argument("--init", help="warm-start a new run from this checkpoint's policy (I3DE from A3DE)")

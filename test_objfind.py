@@ -5,6 +5,7 @@ import re
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import cv2
@@ -556,9 +557,9 @@ def test_every_scene_kind_builds_and_only_the_target_is_red(scene):
     try:
         seed_with(env, target_present=False)
         assert 5 <= len(env.objects) <= 25
-        assert of.detect_target(env.outside_view()).sum() == 0
+        assert of.detect_target(of.outside_view(env)).sum() == 0
         seed, obs, info = seed_with(env, target_present=True)
-        assert of.detect_target(env.outside_view()).sum() > 0
+        assert of.detect_target(of.outside_view(env)).sum() > 0
         assert obs.shape == (71,) and np.all(np.isfinite(obs))
         obs, *_ = env.step(env.action_space.sample())
         assert np.all(np.isfinite(obs))
@@ -1084,7 +1085,7 @@ def test_the_learning_curve_has_labelled_ticks_on_both_axes(tmp_path):
     path = tmp_path / "curve.png"
     of.plot_learning_curve(rows, path)
     image = cv2.imread(str(path))
-    assert image.shape[:2] == of.CURVE_SIZE[::-1] and not (tmp_path / "curve.tmp.png").exists()
+    assert image.shape[:2] == of.CURVE_SIZE[::-1] and [p.name for p in tmp_path.iterdir()] == ["curve.png"]
     ink = image.min(axis=2) < 128                                       # dark pixels: text and lines
     width, height = of.CURVE_SIZE
     left, right, top, bottom = of.CURVE_MARGINS
@@ -1095,14 +1096,40 @@ def test_the_learning_curve_has_labelled_ticks_on_both_axes(tmp_path):
     assert groups >= 4
 
 
-def test_a_killed_checkpoint_write_leaves_the_last_checkpoint_readable(tmp_path):
+def test_a_killed_checkpoint_write_leaves_the_last_checkpoint_readable(tmp_path, monkeypatch):
     of.train(Reach, tmp_path, total_steps=256, ppo=TINY_PPO, progress=False)
-    (tmp_path / "checkpoint.tmp.pt").write_bytes(b"half a file")       # a write that was killed
+    of.release_locks()
+    checkpoint = of.read_checkpoint(tmp_path / "checkpoint.pt", run=True)
+
+    def killed_halfway(obj, path):                                      # half the bytes, then the process dies
+        Path(path).write_bytes(b"half a file")
+        raise KeyboardInterrupt
+    monkeypatch.setattr(of.torch, "save", killed_halfway)
+    with pytest.raises(KeyboardInterrupt):
+        of.save_checkpoint(tmp_path / "checkpoint.pt", dict(checkpoint, update=2))
     assert of.read_checkpoint(tmp_path / "checkpoint.pt")["update"] == 1
+    assert [p.read_bytes() for p in tmp_path.glob(".checkpoint.*")] == [b"half a file"]   # beside it, not on it
     truncated = tmp_path / "truncated.pt"
     truncated.write_bytes((tmp_path / "checkpoint.pt").read_bytes()[:200])
     with pytest.raises(of.UsageError):
         of.read_checkpoint(truncated)
+
+
+def test_gae_matches_a_case_worked_by_hand():
+    """gamma 0.9, lambda 0.8; the episode ends at t = 1. Backwards: A2 = 3 + 0.9 * 2 - 0.5 = 4.3; A1 = 2 - 0.5
+    (no bootstrap past the end) = 1.5; A0 = (1 + 0.9 * 0.5 - 0.5) + 0.9 * 0.8 * 1.5 = 2.03."""
+    rewards, values = np.array([[1.0], [2.0], [3.0]]), np.full((3, 1), 0.5)
+    advantages, returns = of.gae(rewards, values, np.array([[0.0], [1.0], [0.0]]), np.array([2.0]), 0.9, 0.8)
+    assert np.allclose(advantages[:, 0], [2.03, 1.5, 4.3]) and np.allclose(returns[:, 0], [2.53, 2.0, 4.8])
+
+
+def test_the_clipped_surrogate_matches_a_case_worked_by_hand():
+    """clip 0.2: min(r A, clip(r) A) per sample is 0.5, 1.1, 1.2 (gain cut) and -1.5 (loss kept): mean 0.325."""
+    ratio = torch.tensor([0.5, 1.1, 1.5, 1.5], requires_grad=True)
+    loss = of.clipped_surrogate_loss(ratio, torch.tensor([1.0, 1.0, 1.0, -1.0]), 0.2)
+    loss.backward()
+    assert abs(loss.item() + 0.325) < 1e-6
+    assert torch.allclose(ratio.grad, torch.tensor([-0.25, -0.25, 0.0, 0.25]))   # the cut sample pulls nothing
 
 
 def test_the_observation_normaliser_matches_the_statistics_of_all_batches_seen():
@@ -1250,16 +1277,35 @@ def test_a_table_of_other_episodes_leaves_the_stored_cells_byte_identical(tmp_pa
     out.mkdir()
     of.write_csv(fake_rows(0, 30), out / "gnbv-ap-cubes.csv")
     (out / "table2.md").write_text("the stored table\n")
-    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.name != of.LOCK_NAME}
     no_episodes(monkeypatch)
     err = one_line_exit_two(capsys, ["eval", "--table", "--episodes", "20", "--out", str(out)])
     assert "gnbv-ap-cubes.csv holds 30 episodes from seed 0, not 20" in err
     one_line_exit_two(capsys, ["eval", "--table", "--episodes", "30", "--seed", "1", "--out", str(out)])
-    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != of.LOCK_NAME} == before
     # the same experiment, read back: an incomplete table prints but does not write table2.md
     assert of.main(["eval", "--table", "--episodes", "30", "--from-csv", "--out", str(out)]) == 0
     assert "table2.md not written" in capsys.readouterr().out
-    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != of.LOCK_NAME} == before
+
+
+def test_a_table_refuses_a_cell_of_other_weights_and_names_other_package_versions(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "results"
+    out.mkdir()
+    no_episodes(monkeypatch)
+    for (agent, task), scenes in of.PAPER_TABLE_II.items():
+        policy = of.learned_policy(agent, task) if agent in of.LEARNED else None
+        for scene in scenes:
+            of.write_csv(fake_rows(0, 2, agent, task, scene, policy), out / f"{agent}-{task}-{scene}.csv")
+    cell = out / "a3de-ap-cubes.csv"
+    rows = of.read_episodes(cell)
+    of.write_csv([dict(row, weights="0123456789ab") for row in rows], cell)
+    table = ["eval", "--table", "--episodes", "2", "--from-csv", "--out", str(out)]
+    assert "weights 0123456789ab" in one_line_exit_two(capsys, table)
+    of.write_csv([dict(row, versions="python=3.0 numpy=1.0") for row in rows], cell)
+    assert of.main(table) == 0
+    made = (out / "table2.md").read_text().splitlines()[-1]
+    assert made.startswith("Made with mixed: ") and "numpy=1.0" in made and of.package_versions() in made
 
 
 def cell_csv(path: Path, header: str, lines: list) -> Path:
@@ -1272,11 +1318,12 @@ def test_episode_csvs_are_read_strictly(tmp_path, capsys, monkeypatch):
     fields += ",agent,task,scene,weights,target_size_known,world,versions"
     made = f",gnbv,ap,cubes,none,True,{of.WORLD_REVISION}," + of.package_versions()
     # a spreadsheet's TRUE/FALSE, and columns in another order: read by name, the right rate
-    spreadsheet = cell_csv(tmp_path / "a.csv", fields, [f"{i},TRUE,{'TRUE' if i < 9 else 'FALSE'},5,0.3,0.5,1.0"
+    spreadsheet = cell_csv(tmp_path / "a.csv", fields, [f"{i},TRUE,{'TRUE,5,0.3' if i < 9 else 'FALSE,5,0.1'},0.5,1.0"
                                                         + made for i in range(10)])
     assert np.mean([r["success"] for r in of.read_episodes(spreadsheet)]) == 0.9
     reordered = cell_csv(tmp_path / "b.csv", "success,target_present," + fields.replace("target_present,success,", ""),
-                         [f"{'True' if i < 9 else 'False'},true,{i},5,0.3,0.5,1.0" + made for i in range(10)])
+                         [f"{'True' if i < 9 else 'False'},true,{i},5,{0.3 if i < 9 else 0.1},0.5,1.0" + made
+                          for i in range(10)])
     rows = of.read_episodes(reordered)
     assert np.mean([r["success"] for r in rows]) == 0.9 and all(r["target_present"] for r in rows)
     good = "0,True,True,5,0.3,0.5,1.0" + made
@@ -1284,6 +1331,9 @@ def test_episode_csvs_are_read_strictly(tmp_path, capsys, monkeypatch):
              "seed 0 is also on line 2": [good, good], "0 steps": ["0,True,True,0,0.3,0.5,1.0" + made],
              "131 steps": ["0,True,True,131,0.3,0.5,1.0" + made], "not a fraction": ["0,True,True,5,1.3,0.5,1.0" + made],
              "a target seen in a scene without one": ["0,False,True,5,0.3,0.5,1.0" + made],
+             "a stop succeeds exactly above 20%": ["0,True,True,5,0.0,0.5,1.0" + made],         # success, 0 % seen
+             "success False with 30.0% of the target seen": ["0,True,False,5,0.3,0.5,1.0" + made],   # flipped
+             "a failure without a target before the horizon": ["0,False,False,5,0.0,0.5,1.0" + made],
              "not one of": ["0,True,True,5,0.3,0.5,1.0" + made.replace("gnbv", "nbv")],
              "differs from line 2": [good, "1,True,True,5,0.3,0.5,1.0" + made.replace("cubes", "random-shapes")]}
     bad = {name: cell_csv(tmp_path / f"bad{i}.csv", fields, rows) for i, (name, rows) in enumerate(lines.items())}
@@ -1336,7 +1386,7 @@ def test_outputs_are_checked_before_any_episode(tmp_path, capsys, monkeypatch):
 def test_a_failed_image_or_video_write_is_one_line_and_exit_two(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(of.cv2, "imwrite", lambda *args, **kwargs: False)
     err = one_line_exit_two(capsys, ["demo", "--agent", "random", "--seed", "2", "--out", str(tmp_path)])
-    assert "could not write" in err and not list(tmp_path.iterdir())
+    assert "could not write" in err and [p.name for p in tmp_path.iterdir()] == [of.LOCK_NAME]
 
 
 def test_a_non_finite_or_misshapen_action_is_refused_and_the_env_goes_on(ap_env):
@@ -1636,9 +1686,8 @@ def test_a_new_ppo_setting_is_one_field_and_round_trips_through_a_checkpoint_and
     assert of.main(["eval", "--agent", "a3de", "--weights", str(run / "checkpoint.pt"), "--episodes", "1",
                     "--workers", "1"]) == 0
     capsys.readouterr()
-    with pytest.raises(SystemExit):
-        of.main(["train", "--out", str(tmp_path / "bad"), "--set", "momentum=nan"])
-    assert "momentum" in capsys.readouterr().err
+    assert of.main(["train", "--out", str(tmp_path / "bad"), "--set", "momentum=nan"]) == 2
+    assert "momentum" in capsys.readouterr().err and not (tmp_path / "bad").exists()
 
 
 def test_train_runs_in_a_fresh_clone(tmp_path):
@@ -1687,13 +1736,20 @@ def test_a_second_run_into_a_folder_being_written_is_refused_and_the_first_keeps
     cells = sorted(out.glob("*.csv"))
     assert len(cells) == sum(map(len, of.PAPER_TABLE_II.values()))            # all the first run's cells
     assert all(len(of.read_episodes(cell)) == 1 for cell in cells)
-    assert (out / "table2.md").exists() and not list(out.glob(".*"))      # no lock or temporary file left
-    # a lock left by a run that died is taken over; one held by a live process is not
-    (out / of.LOCK_NAME).write_text("999999999")
+    assert (out / "table2.md").exists() and not list(out.glob(".*.tmp*"))   # no temporary file left
+    # the lock of a run that was killed is free again; one held by a live process is not
+    hold = (f"import filelock, time; lock = filelock.FileLock({str(out / of.LOCK_NAME)!r}); lock.acquire(timeout=0); "
+            "print('held', flush=True); time.sleep(60)")
+    holder = subprocess.Popen([sys.executable, "-c", hold], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        capsys.readouterr()
+        assert "being written" in one_line_exit_two(capsys, ["train", "--out", str(out)])
+        assert of.locked_by_another(out)
+    finally:
+        holder.kill()
+        holder.wait()
     assert of.main(["eval", "--table", "--from-csv", "--episodes", "1", "--out", str(out)]) == 0
-    (out / of.LOCK_NAME).write_text(str(subprocess.Popen(["sleep", "30"]).pid))
-    capsys.readouterr()
-    assert "being written" in one_line_exit_two(capsys, ["train", "--out", str(out)])
 
 
 def test_eval_into_a_closed_pipe_still_writes_its_csv(tmp_path):
@@ -1799,7 +1855,8 @@ def test_runs_into_different_run_folders_go_on_side_by_side(tmp_path):
     (dict(num_piles=3, min_objects=2), "num_piles"), (dict(horizon=0), "horizon"),
     (dict(voxels_per_side=2.5), "voxels_per_side"), (dict(trunc_m=float("nan")), "trunc_m"),
     (dict(num_piles=3, pile_overlap_chance=0.0), "pile_overlap_chance"), (dict(variable_scale=(2.0, 1.0)), "variable_scale"),
-    (dict(target_size_known="no"), "target_size_known"), (dict(object_size_m=0.2), "object_size_m")])
+    (dict(target_size_known="no"), "target_size_known"), (dict(object_size_m=0.2), "object_size_m"),
+    (dict(state_voxel_m=0.0), "state_voxel_m"), (dict(horizon=10 ** 400), "horizon")])
 def test_settings_that_cannot_build_a_scene_are_refused_at_construction_naming_the_field(overrides, field):
     with pytest.raises(ValueError, match=f"^{field}="):
         of.ObjectFindingEnv("ip", **overrides)
@@ -1822,6 +1879,9 @@ def test_step_or_reset_after_close_says_the_env_is_closed():
     (["eval", "--agent", "gnbv", "--seed", str(2 ** 40)], "a seed must be"),
     (["eval", "--agent", "gnbv", "--seed", str(2 ** 32 - 5), "--episodes", "10"], "past the largest seed"),
     (["train", "--set", "hidden=100000"], "hidden=100000"),
+    (["train", "--set", "init_log_std=-1000"], "init_log_std=-1000"),
+    (["train", "--set", "init_terminate_prob=1e-300"], "init_terminate_prob"),
+    (["train", "--world", "state_voxel_m=0"], "state_voxel_m=0"),
     (["eval", "--table", "--scene", "random-shapes"], "drop --scene"),
     (["eval", "--agent", "gnbv", "--from-csv"], "--from-csv reads the cells of --table"),
     (["train", "--resume", "--seed", "3"], "start a new run")])
@@ -1899,7 +1959,7 @@ def test_a_checkpoint_whose_tensors_do_not_fit_names_the_tensor(tmp_path):
     name = sorted(checkpoint["model"])[0]
     checkpoint["model"][name] = checkpoint["model"][name][:1]
     of.torch.save(checkpoint, tmp_path / "cut.pt")
-    with pytest.raises(of.UsageError, match=f"does not hold an objfind network: {name} is of another shape"):
+    with pytest.raises(of.UsageError, match=f"does not hold an objfind network: size mismatch for {name}"):
         of.read_checkpoint(tmp_path / "cut.pt")
 
 
@@ -2127,6 +2187,126 @@ def test_the_arm_loop_works_in_any_base_frame(recording):
         assert np.allclose(goal, [b["goal_x_m"], b["goal_y_m"], b["goal_z_m"]], atol=1e-3)
 
 
+# --- on an arm: every input checked, every goal finite, in the box and one step away at most ---------
+
+@pytest.fixture(scope="module")
+def wrist_view():
+    """A simulated first view of an ap scene with the target in sight, and the gripper's pose."""
+    env = of.ObjectFindingEnv("ap", "cubes")
+    env.reset(seed=2)
+    view, T_world_tool = env.view, env.gripper_pose()
+    env.close()
+    return view, T_world_tool
+
+
+def arm_search(task="ap", agent="random", **kwargs) -> of.ArmSearch:
+    return of.ArmSearch(of.Searcher(of.TASKS[task]), of.make_agent(agent, of.TASKS[task], 0), **kwargs)
+
+
+def test_a_bad_depth_pixel_is_no_return_and_the_rest_of_the_view_is_fused(wrist_view):
+    view = wrist_view[0]
+    fuse = lambda depth: of.Searcher(of.TASKS["ap"]).observe(depth, view.T_world_camera, detections=view.detections)
+    clean = fuse(view.depth_m)
+    assert clean > 10000
+    for bad in (np.nan, np.inf, -np.inf, -0.5, 1e6, 0.0):
+        depth = view.depth_m.copy()
+        depth[30, 40] = bad
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")          # and no numpy warning either
+            assert abs(fuse(depth) - clean) <= 0.01 * clean, bad
+    half_bad = view.depth_m.copy()
+    half_bad[:, ::2] = np.nan
+    assert 0.5 * clean < fuse(half_bad) <= clean
+
+
+def test_bad_detections_poses_and_image_sizes_are_a_value_error_that_names_them(wrist_view):
+    view, T_world_tool = wrist_view
+    searcher = of.Searcher(of.TASKS["ap"])
+    sheared = view.T_world_camera.copy()
+    sheared[:3, :3] = sheared[:3, :3] @ [[1, 0.1, 0], [0, 1, 0], [0, 0, 1]]
+    nan_pose, nan_score, high_score = view.T_world_camera.copy(), view.detections.copy(), view.detections.copy()
+    nan_pose[0, 3], nan_score[5, 5], high_score[5, 5] = np.nan, np.nan, 1.5
+    for kwargs, named in ((dict(detections=nan_score), "detection score"), (dict(detections=high_score), "detection"),
+                          (dict(detections=view.detections, T_world_depth=sheared), "rigid"),
+                          (dict(detections=view.detections, T_world_depth=nan_pose), "finite"),
+                          (dict(detections=view.detections[:-1]), "detections must be"),
+                          (dict(rgb=view.rgb[:, :-1]), "rgb must be"), (dict(rgb=view.rgb.astype(float)), "rgb must"),
+                          (dict(detections=view.detections, depth_m=view.depth_m[1:]), "depth_m must be"),
+                          (dict(), "one of the two"), (dict(rgb=view.rgb, detections=view.detections), "one of")):
+        args = {**dict(depth_m=view.depth_m, T_world_depth=view.T_world_camera), **kwargs}
+        with pytest.raises(ValueError, match=named):
+            searcher.observe(**args)
+    assert searcher.views == 0 and searcher.volume.observed_count == 0   # nothing was fused
+    with pytest.raises(ValueError, match="T_base_tool"):
+        arm_search().step(view.depth_m, T_world_tool[:3], rgb=view.rgb)
+    with pytest.raises(ValueError, match="T_base_workspace"):
+        arm_search(T_base_workspace=np.diag([2.0, 1, 1, 1]))
+    for area in (-1e-3, 0.0, float("nan"), True, "big"):
+        with pytest.raises(ValueError, match="target_area_m2"):
+            arm_search(target_area_m2=area)
+
+
+def test_a_tool_far_outside_is_refused_and_one_just_outside_gets_a_goal_in_the_box_one_step_away(wrist_view):
+    view, T_world_tool = wrist_view
+    cfg = of.TASKS["ap"]
+    above = T_world_tool.copy()
+    above[2, 3] = cfg.ceiling_m + 1.0
+    with pytest.raises(ValueError, match=r"1\.000 m outside the searched box"):
+        arm_search().step(view.depth_m, above, rgb=view.rgb)
+    far_workspace = np.eye(4)
+    far_workspace[:3, 3] = [100.0, 0, 0]           # the base frame's box, 100 m away from the gripper
+    with pytest.raises(ValueError, match="outside the searched box"):
+        arm_search(T_base_workspace=far_workspace).step(view.depth_m, T_world_tool, rgb=view.rgb)
+    pitched = T_world_tool.copy()
+    pitched[:3, :3] = pitched[:3, :3] @ of.rotation(0.5, "x")   # about the gripper's right: a pitch
+    with pytest.raises(ValueError, match="tool frame"):
+        arm_search().step(view.depth_m, pitched, rgb=view.rgb)
+    rng, half, moves = np.random.default_rng(0), cfg.workspace_m / 2, []
+    for out_m in [0.004] * 60 + [0.04] * 60:   # a few millimetres, or most of a step, out of faces and corners
+        T = T_world_tool.copy()
+        T[:3, :3] = of.gripper_rotation(rng.uniform(-np.pi, np.pi), rng.uniform(-1, 1))
+        T[:3, 3] = rng.uniform([-half, -half, 0], [half, half, cfg.ceiling_m])
+        for axis in rng.choice(3, rng.integers(1, 3), replace=False):   # out across one or two faces
+            T[axis, 3] = out_m + (half if axis < 2 else cfg.ceiling_m) if rng.random() < 0.5 or axis == 2 else \
+                -half - out_m
+        search = arm_search()
+        search.agent.act = lambda searcher, T_tool: np.r_[rng.choice([-1.0, 1.0], of.ACTION_MOVES), -1.0]   # longest
+        _, T_goal = search.step(view.depth_m, T, rgb=view.rgb)
+        assert of.outside_box_m(search.searcher, T_goal) == 0 and np.isfinite(T_goal).all()
+        moves.append(np.linalg.norm(T_goal[:3, 3] - T[:3, 3]))
+    assert max(moves) <= np.sqrt(3) * cfg.max_step_m
+
+
+def test_the_readmes_arm_loop_runs_as_written(wrist_view):
+    """The README's "On your arm" loop, executed: a simulated arm in a turned base frame, the rig from the
+    calibration, rgb= frames, the default target area."""
+    code = re.search(r"## On your arm.*?```python\n(.*?)```", (HERE / "README.md").read_text(), re.S).group(1)
+    env = of.ObjectFindingEnv("ap", "cubes")
+    env.reset(seed=2)
+    T_base_workspace = np.eye(4)
+    T_base_workspace[:3, :3], T_base_workspace[:3, 3] = of.rotation(2.0, "z"), [0.5, 0.1, 0.2]
+
+    class SimulatedArm:
+        goals = []
+
+        def observe(self):
+            return env.view.depth_m, env.view.rgb, T_base_workspace @ env.gripper_pose()
+
+        def move_to(self, T_base_goal):
+            self.goals.append(T_base_goal)
+            env._drive_gripper(env.gripper_pose(), np.linalg.inv(T_base_workspace) @ T_base_goal)
+            env._observe()
+
+    rig = env.searcher.rig
+    names = dict(objfind=of, depth_camera=rig.depth, rgb_camera=rig.rgb, T_tool_depth=rig.T_tool_depth,
+                 T_depth_rgb=rig.T_depth_rgb, T_base_workspace=T_base_workspace, target_area_m2=None,
+                 arm=SimulatedArm())
+    exec(code, names)
+    env.close()
+    assert 1 <= len(SimulatedArm.goals) < of.TASKS["ap"].horizon and names["T_base_goal"] is None   # it stopped
+    assert names["search"].searcher.target_area_m2 == of.TASKS["ap"].nominal_target_area_m2
+
+
 # --- the rig's sensing -----------------------------------------------------------------------------
 
 def test_the_sensor_model_at_zero_is_the_ideal_sensor_and_draws_nothing():
@@ -2339,15 +2519,21 @@ def test_the_drawn_floor_is_the_floor_tinyrenderer_drew():
 
 
 @pytest.mark.parametrize("task", ["ap-real", "ip-real"])
-def test_the_real_presets_build_table_one_scenes_inside_the_small_floor(task):
+def test_the_real_presets_build_table_one_scenes_inside_the_small_floor(task, monkeypatch):
     env = of.ObjectFindingEnv(task, "cubes-and-cuboids")
     cfg, half = env.cfg, env.cfg.workspace_m / 2
     assert (cfg.workspace_m, cfg.horizon, cfg.no_target_prob, cfg.gnbv_samples) == (0.33, 50, 0.0, 30)
     assert (cfg.min_objects, cfg.max_objects, cfg.num_piles) == (15, 30, 4 if task == "ip-real" else 0)
+    assert all(getattr(cfg, name) == value for name, value in of.RIG_SENSING.items())   # the rig's sensing
+    piles, real_pile_positions = [], of.pile_positions
+    monkeypatch.setattr(of, "pile_positions", lambda objects, cfg, rng: piles.append(cfg.num_piles) or
+                        real_pile_positions(objects, cfg, rng))
     for seed in range(3):
         env.reset(seed=seed)
         assert 15 <= len(env.objects) <= 30 and env.target_present
-        assert env.heaped == (task == "ip-real" and env.heaped)
+        tops = [env.sim.getBasePositionAndOrientation(o.body)[0][2] for o in env.objects]
+        assert env.heaped == (task == "ip-real") and piles == [4] * (seed + 1) * (task == "ip-real")   # 0.1 unheaped
+        assert not env.heaped or max(tops) > 1.2 * cfg.object_size_m   # a pile: an object stands on others
         for o in env.objects:
             (x, y, z), _ = env.sim.getBasePositionAndOrientation(o.body)
             assert abs(x) < half and abs(y) < half and 0 < z < cfg.wall_height_m
