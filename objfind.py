@@ -1078,8 +1078,8 @@ class PPOAgent:
 # ================================================================================================
 # On an arm (Sec. III-D): the loop a position-controlled arm runs. Each wrist frame (depth, colour or
 # detections, poses from the arm's kinematics and the hand-eye calibration) goes to the searcher; the
-# agent's displacement comes back as the next gripper pose in the robot's base frame. `replay` runs
-# recorded frames through it; the README shows it on an arm.
+# agent's displacement comes back as the next gripper pose in the robot's base frame, checked (the
+# harness's Input section) so that no bad frame moves the arm. tools/replay.py runs recorded frames through it.
 # ================================================================================================
 
 class ArmSearch:
@@ -2178,6 +2178,7 @@ import multiprocessing
 import platform
 import shlex
 import signal
+import socket
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -2188,7 +2189,8 @@ from tqdm import tqdm
 
 
 # ================================================================================================
-# Input: what a user or a file hands the system (settings, checkpoints) is checked here, once.
+# Input: what a user, a file or an arm hands the system (settings, actions, wrist frames and poses,
+# checkpoints) is checked here, once; so is each goal before it reaches an arm.
 # ================================================================================================
 
 class UsageError(Exception):
@@ -2666,6 +2668,7 @@ class DeadWorker(Exception):
     """A Ray worker or actor died: the command stops, as with a dead worker process."""
 
 
+RAY_CONNECT_S = 10   # how long --ray ADDRESS may take to answer at all
 RAY_EXCLUDES = [".git", "runs", "out", "results", "__pycache__", ".pytest_cache"]   # not needed by workers
 
 
@@ -2677,6 +2680,13 @@ def connect_ray(address: str):
         import ray
     except ImportError:
         raise UsageError("--ray needs Ray, which objfind does not require: pip install 'ray[default]'") from None
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not ray.is_initialized() and host and port.isdigit():   # Ray retries an address nobody answers for ever
+        try:
+            socket.create_connection((host, int(port)), timeout=RAY_CONNECT_S).close()
+        except OSError as error:
+            raise UsageError(f"--ray {address}: nothing answers there ({error.strerror or error}); start the "
+                             "cluster (ray start --head) or give its address") from None
     if not ray.is_initialized():
         ray.init(address=None if address == "local" else address, log_to_driver=False,
                  runtime_env={"working_dir": str(Path(__file__).resolve().parent), "excludes": RAY_EXCLUDES})
@@ -3525,6 +3535,8 @@ def eval_table(args) -> int:
                                                  information_rule(args))
                for (agent, task), scenes in PAPER_TABLE_II.items() for scene in scenes}
     stored = {cell: stored_cell(out / f"{'-'.join(cell)}{suffix}.csv", seeds, origins[cell]) for cell in origins}
+    if args.ray and None in stored.values() and not args.from_csv:
+        connect_ray(args.ray)
     cells, versions, t_table = {}, set(), time.perf_counter()
     for (agent, task, scene), rows in stored.items():
         csv_path, t_cell = out / f"{agent}-{task}-{scene}{suffix}.csv", time.perf_counter()
@@ -3567,6 +3579,8 @@ def cmd_eval(args) -> int:
         writable_folder(csv_path.parent)
         origin = cell_origin(args.agent, args.task, args.scene, policy, information_rule(args))
         stored_cell(csv_path, list(range(args.seed, args.seed + args.episodes)), origin)
+    if args.ray:
+        connect_ray(args.ray)
     t0 = time.perf_counter()
     rows = evaluate(args.agent, args.task, args.scene, args.episodes, args.seed, args.workers, policy=policy,
                     overrides=information_rule(args), ray_address=args.ray)
@@ -3608,6 +3622,8 @@ def cmd_train(args) -> int:
         raise UsageError(f"--world: {error}") from None
     ppo = ppo_settings(dict(args.set or []))
     init = read_checkpoint(Path(args.init)) if args.init else None
+    if args.ray:   # asked before any work: an address nobody answers is one line
+        connect_ray(args.ray)
     writable_folder(out)
     meta = dict(task=args.task, scene=args.scene, **({"world": world} if world else {}))
     if init is not None:

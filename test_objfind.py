@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import objfind as of
-from tools import bench, sensors, soak
+from tools import bench, sensors, soak, stops
 from tools import replay as replay_tool
 
 torch = of.torch   # imported by objfind after it limits BLAS threads
@@ -1514,6 +1514,24 @@ def test_a_short_soak_finds_no_crash_no_nan_and_no_leak():
     assert counts["crashes"] == 0 and counts["non_finite"] == 0 and counts["leaked"] == 0, counts["first_crash"]
 
 
+def test_the_stops_study_records_each_stop_with_the_estimated_and_the_true_share():
+    rows = stops.stop_chunk("gnbv", "ap", "cubes", [0, 1, 2, 3], None)
+    assert [row["seed"] for row in rows] == [0, 1, 2, 3] and all(0 <= row["true_share"] <= 1 for row in rows)
+    assert any(row["claimed_found"] for row in rows)
+    for row in rows:   # a claim "found" is the estimate above 20 %, and succeeds exactly when the truth is
+        assert row["claimed_found"] == (row["stopped"] and row["perceived_share"] > 0.2)
+        assert not row["claimed_found"] or row["success"] == (row["true_share"] > 0.2)
+    table = stops.stops_markdown({("gnbv", "ap", "cubes"): rows}, 0.2).splitlines()
+    assert len(table) == 3 and table[-1].startswith("| gnbv | ap / cubes | ")
+
+
+def test_a_short_arm_soak_gets_only_finite_goals_within_a_step_and_no_traceback():
+    arm = soak.run_arm_soak(frames=600, workers=1, progress=False)
+    assert arm["frames"] == 600 and arm["goals"] > 100 and arm["refused"] > 100 and arm["stops"] > 0
+    failures = (arm["non_finite_goals"], arm["leaps"], arm["tracebacks"], arm["wrongly_refused"])
+    assert failures == (0, 0, 0, 0), arm["first_failure"]
+
+
 # ------------------------------------------------------------------------------------------------
 # one information rule for every agent
 # ------------------------------------------------------------------------------------------------
@@ -2115,16 +2133,37 @@ def test_a_recorded_episode_replays_to_the_env_states_and_actions_exactly(record
     assert np.median(np.linalg.norm(goals - next_xyz, axis=1)) < 0.01
 
 
-def test_millimetre_png_depth_replays_to_the_end(recording, tmp_path, capsys):
-    folder = recording[0]
+def test_millimetre_png_depth_replays_to_the_same_stop_with_nearby_moves(recording, tmp_path, capsys):
+    """--depth png: millimetre depth and the colour detector (without the simulated detector's noise) in place
+    of what the searcher fused. The README's "slightly different": the same stop, moves within half a step."""
+    folder, actions = recording[0], np.array(recording[2])
     assert replay_tool.main(["play", str(folder), "--agent", "i3de", "--depth", "png", "--out", str(tmp_path)]) == 0
-    out = capsys.readouterr().out
-    assert "actions equal to the recording's own" in out
-    rows = list(of.csv.DictReader(open(tmp_path / f"replay-{folder.name}-i3de.csv")))
-    assert len(rows) >= 1 and all(np.isfinite(float(row["dx"])) for row in rows)
-    assert rows[-1]["stop"] == "True" or len(rows) == len(recording[2])
-    sheet = cv2.imread(str(tmp_path / f"replay-{folder.name}-i3de.png"))
+    assert "actions equal to the recording's own" in capsys.readouterr().out
+    rows = list(of.csv.DictReader(open(tmp_path / f"replay-{folder.name}-i3de-png.csv")))
+    replayed = np.array([[float(row[name]) for name in of.ACTION_NAMES] for row in rows])
+    assert len(rows) == len(actions) and rows[-1]["stop"] == "True"        # stops at the recording's frame
+    assert np.abs(replayed - actions)[:, :of.ACTION_MOVES].mean() < 0.5
+    assert {row["depth"] for row in rows} == {"png"} and {row["weights"] for row in rows} == {
+        of.policy_fingerprint(of.learned_policy("i3de", "ip"))}                # the CSV says what made it
+    sheet = cv2.imread(str(tmp_path / f"replay-{folder.name}-i3de-png.png"))
     assert sheet is not None and sheet.shape[1] == 4 * of.PANEL[0]
+
+
+def test_replays_into_one_folder_never_replace_another_experiments(recording, tmp_path, capsys):
+    folder, out = recording[0], tmp_path / "out"
+    play = lambda source, *extra: replay_tool.main(["play", str(source), "--out", str(out), *extra])
+    assert play(folder, "--agent", "a3de") == 0 and play(folder, "--agent", "a3de", "--depth", "png") == 0
+    written = {p.name: p.read_bytes() for p in out.glob("replay-*.csv")}
+    assert len(written) == 2                                                  # exact and png side by side
+    assert play(folder, "--agent", "a3de") == 0                               # the same replay again: its own file
+    namesake = tmp_path / "elsewhere" / folder.name                           # another recording, the same name
+    shutil.copytree(folder, namesake)
+    capsys.readouterr()
+    assert play(namesake, "--agent", "a3de") == 2
+    assert "made by another replay" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in out.glob("replay-*.csv")} == written
+    rows = list(of.csv.DictReader(open(out / f"replay-{folder.name}-a3de-exact.csv")))
+    assert all(np.isfinite(float(row["dx"])) for row in rows) and rows[0]["agent"] == "a3de"
 
 
 def broken_copy(folder: Path, tmp_path: Path, name: str) -> Path:
@@ -2146,10 +2185,30 @@ def test_a_broken_recording_is_one_line_exit_two_and_writes_nothing(recording, t
     meta = of.json.loads((intrinsics / "recording.json").read_text())
     meta["depth_camera"]["width"] = meta["depth_camera"]["width"] * 2
     (intrinsics / "recording.json").write_text(of.json.dumps(meta))
-    expected = {"missing": "frame 3", "small": "depth image", "pose": "unreadable", "intrinsics": "depth image"}
+    meta = of.json.loads((folder / "recording.json").read_text())
+    hostile = dict(task_list=dict(task=["ip"]), odd_seed=dict(seed="seven"), png_scale=dict(depth_png_m=-0.001),
+                   nan_scale=dict(depth_png_m=float("nan")), area_bool=dict(target_area_m2=True),
+                   tiny_focal=dict(rgb_camera=dict(meta["rgb_camera"], K=[[1e-300, 0, 40], [0, 1e-300, 30], [0, 0, 1]])))
+    for name, change in hostile.items():
+        broken = broken_copy(folder, tmp_path, name)
+        (broken / "recording.json").write_text(of.json.dumps(dict(meta, **change)))
+    zero = broken_copy(folder, tmp_path, "zero")
+    (zero / "recording.json").unlink()
+    (zero / "recording.json").symlink_to("/dev/zero")
+    empty, npz = broken_copy(folder, tmp_path, "empty"), broken_copy(folder, tmp_path, "npz")
+    (empty / "frames" / "000001-depth.npy").write_bytes(b"")
+    np.savez(npz / "frames" / "000001-depth.npy", np.zeros(3))
+    (npz / "frames" / "000001-depth.npy.npz").rename(npz / "frames" / "000001-depth.npy")
+    huge = broken_copy(folder, tmp_path, "huge")   # a small PNG that would decode to 15000 x 15000
+    cv2.imwrite(str(huge / "frames" / "000002-color.png"), np.zeros((15000, 15000, 3), np.uint8))
+    expected = {"missing": "frame 3", "small": "depth image", "pose": "unreadable", "intrinsics": "depth image",
+                "task_list": "task must be", "odd_seed": "seed must be", "png_scale": "depth_png_m",
+                "nan_scale": "depth_png_m", "area_bool": "target_area_m2", "tiny_focal": "rgb_camera.K",
+                "zero": "not a file", "empty": "depth 000001", "npz": "not one .npy", "huge": "15000 x 15000"}
     for name, words in expected.items():
         out = tmp_path / f"out-{name}"
-        assert replay_tool.main(["play", str(tmp_path / name), "--depth", "png", "--out", str(out)]) == 2, name
+        depth = "exact" if name in ("empty", "npz") else "png"
+        assert replay_tool.main(["play", str(tmp_path / name), "--depth", depth, "--out", str(out)]) == 2, name
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], (name, err)
         assert not out.exists(), name   # refused before any output
@@ -2596,6 +2655,34 @@ def test_a_scheduler_stop_ends_an_eval_and_its_workers(tmp_path):
         assert not status.exists() or "\nState:\tZ" in status.read_text(), f"worker {pid} still runs"
 
 
+def test_a_scheduler_stop_saves_a_training_run_that_resumes(tmp_path):
+    """SIGTERM during train: exit 130, the last finished update in the checkpoint and the log, one line
+    saying how to resume, and the resumed run goes on from there."""
+    import signal
+    import time
+    small = ["--set", "batch_steps=60", "--set", "minibatch=30", "--set", "checkpoint_every=1000", "--workers", "1"]
+    run = subprocess.Popen([sys.executable, str(HERE / "objfind.py"), "train", "--steps", "100000", *small,
+                            "--out", "run"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log, deadline = tmp_path / "run" / "log.csv", time.monotonic() + 120
+    while not (log.exists() and len(log.read_text().splitlines()) >= 3) and time.monotonic() < deadline:
+        time.sleep(0.2)                                          # two updates logged, none checkpointed yet
+    run.send_signal(signal.SIGTERM)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 130, err[-500:]
+    said = [line for line in err.replace("\r", "\n").splitlines() if line.startswith("objfind:")]
+    assert len(said) == 1 and "resume with" in said[0], said
+    checkpoint = of.read_checkpoint(tmp_path / "run" / "checkpoint.pt", run=True)
+    assert checkpoint["update"] >= 2 and len(of.read_train_log(log, checkpoint["update"])) == checkpoint["update"]
+    assert of.main(["train", "--resume", "--out", str(tmp_path / "run"), "--workers", "1",
+                    "--steps", str(checkpoint["env_steps"] + 60)]) == 0
+    assert of.read_checkpoint(tmp_path / "run" / "checkpoint.pt")["update"] == checkpoint["update"] + 1
+
+
+def test_a_bad_init_checkpoint_leaves_no_run_folder(tmp_path, capsys):
+    err = one_line_exit_two(capsys, ["train", "--init", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "r")])
+    assert "not found" in err and not (tmp_path / "r").exists()
+
+
 def test_a_randomised_sensor_draws_each_episodes_errors_within_its_range():
     errors = dict(tof_noise_ratio=0.01, tof_missing_share=0.02, hand_eye_error_m=0.003, hand_eye_error_rad=0.0175)
     cfg = dataclasses.replace(of.TASKS["ap"], sensor_error_scale=(0.0, 2.0), **errors)
@@ -2673,6 +2760,13 @@ def test_the_sensor_study_writes_every_point_and_reads_finished_ones_back(tmp_pa
     capsys.readouterr()
     assert sensors.main(["--episodes", "1", "--workers", "1", "--out", str(out)]) == 0
     assert capsys.readouterr().out.splitlines()[:len(table)] == table
+    # one tampered stored point and one missing: refused before the missing one runs
+    last = sorted(out.glob("*.csv"))[-1]
+    last.write_text(last.read_text().replace(",True,", ",False,", 1))
+    sorted(out.glob("*.csv"))[0].unlink()
+    assert sensors.main(["--episodes", "1", "--workers", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and last.name in err[0], err
 
 
 # --- past one machine: Ray (skipped where Ray is not installed) --------------------------------------
@@ -2716,8 +2810,10 @@ def test_a_killed_ray_worker_ends_the_command_with_one_line(local_ray, command, 
     import threading
     import time
 
+    missed = []
+
     def kill_one():
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             for proc in Path("/proc").iterdir():
                 try:
@@ -2728,17 +2824,28 @@ def test_a_killed_ray_worker_ends_the_command_with_one_line(local_ray, command, 
                 except OSError:
                     continue
             time.sleep(0.2)
+        missed.append(True)                      # no victim found: end the command now, not after the whole job
+        os.kill(os.getpid(), signal.SIGINT)
     killer = threading.Thread(target=kill_one)
     killer.start()
     code = of.main([*command, "--ray", "--out", str(tmp_path / ("run" if command[0] == "train" else "x.csv"))])
     killer.join()
     said = [line for line in capsys.readouterr().err.replace("\r", "\n").splitlines() if line.startswith("objfind:")]
-    assert code == 2 and len(said) == 1 and "worker process died" in said[0], said
+    assert not missed and code == 2 and len(said) == 1 and "worker process died" in said[0], said
+
+
+def test_a_ray_address_nobody_answers_is_refused_within_thirty_seconds(tmp_path):
+    pytest.importorskip("ray")
+    t0 = of.time.perf_counter()
+    done = subprocess.run([sys.executable, str(HERE / "objfind.py"), "eval", "--agent", "gnbv", "--episodes", "1",
+                           "--ray", "127.0.0.1:1"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and of.time.perf_counter() - t0 < 30, done.stderr[-300:]
+    assert done.stderr.strip().splitlines() == [done.stderr.strip()] and "nothing answers" in done.stderr
 
 
 # --- tools/: each a script that imports objfind ------------------------------------------------------
 
-@pytest.mark.parametrize("tool", ["replay.py", "sensors.py", "bench.py", "soak.py"])
+@pytest.mark.parametrize("tool", ["replay.py", "sensors.py", "bench.py", "soak.py", "stops.py"])
 def test_each_tool_runs_as_a_script_with_help(tool):
     done = subprocess.run([sys.executable, str(HERE / "tools" / tool), "--help"], capture_output=True, text=True,
                           timeout=300, cwd="/")

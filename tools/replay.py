@@ -9,6 +9,7 @@ area) and per frame frames/NNNNNN-color.png, -depth.png (16-bit mm, 0: no return
 (T_base_tool, T_base_depth), and from the simulation -depth.npy, -detections.npy (what the searcher fused).
 """
 import csv
+import dataclasses
 import json
 import os
 import shutil
@@ -19,10 +20,11 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from objfind import (ACTION_NAMES, BASELINES, LEARNED, PANEL, TASKS, ArgumentParser, ArmSearch,  # noqa: E402
-                     Camera, ObjectFindingEnv, Rig, Searcher, Settings, UsageError, add_agent_args, agent_policy,
-                     bins_panel, checked_settings, default_task, detect_target, label, make_agent, quat_of,
-                     run_cli, seed_arg, volume_panel, wrist_panel, write_contact_sheet, write_csv, writable_folder)
+from objfind import (ACTION_NAMES, BASELINES, LEARNED, MAX_SEED, PANEL, TASKS, ArgumentParser,  # noqa: E402
+                     ArmSearch, Camera, ObjectFindingEnv, Rig, Searcher, Settings, UsageError, add_agent_args,
+                     agent_policy, bins_panel, checked_settings, default_task, detect_target, field_kind, label,
+                     make_agent, policy_fingerprint, quat_of, run_cli, seed_arg, volume_panel,
+                     wrist_panel, write_contact_sheet, write_csv, writable_folder)
 
 RECORDING_FORMAT = "objfind-recording/1"
 DEPTH_PNG_M = 0.001   # a 16-bit depth PNG holds millimetres (0: no return), as RealSense and ROS loggers write
@@ -114,9 +116,10 @@ def checked_camera(value, name: str) -> Camera:
     if not all(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 10_000 for v in (width, height)):
         raise ValueError(f"{name}: width and height must be whole numbers of pixels")
     K = checked_matrix(value["K"], f"{name}.K", (3, 3))
-    if not (K[0, 0] > 0 and K[1, 1] > 0 and 0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height
+    if not (K[0, 0] >= 1 and K[1, 1] >= 1 and 0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height
             and np.allclose(K[2], [0, 0, 1])):
-        raise ValueError(f"{name}.K does not fit a {width} x {height} image (fx, fy > 0, the principal point on it)")
+        raise ValueError(f"{name}.K does not fit a {width} x {height} image (fx, fy >= 1 pixel, the principal "
+                         "point on it)")
     near, far = value.get("near_m", 0.0), value.get("far_m")
     far = np.inf if far is None else far
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (near, far)) or not 0 <= near < far:
@@ -124,9 +127,42 @@ def checked_camera(value, name: str) -> Camera:
     return Camera(width, height, K, float(near), float(far))
 
 
+MAX_JSON_BYTES = 2 ** 20   # recording.json and a frame's pose.json are a few kB
+
+
+def read_json(path: Path, what: str):
+    """A JSON file of at most MAX_JSON_BYTES (a link to /dev/zero is no file), or a ValueError."""
+    if not path.is_file():
+        raise ValueError(f"{what} {path.name} is missing or not a file")
+    with open(path, "rb") as f:
+        text = f.read(MAX_JSON_BYTES + 1)
+    if len(text) > MAX_JSON_BYTES:
+        raise ValueError(f"{what} {path.name} is over {MAX_JSON_BYTES // 1024} kB")
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ValueError(f"{what} {path.name} is unreadable ({error})") from None
+
+
+def png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG's header, read before the image is decoded; None if it is no PNG."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
 def read_image(path: Path, shape: tuple, dtype, what: str) -> np.ndarray:
-    """An image file of exactly `shape` and `dtype`, or a ValueError saying how it differs."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    """A PNG of exactly `shape` and `dtype`, its size checked before it is decoded, or a ValueError saying how
+    it differs."""
+    size = png_size(path) if path.is_file() else None
+    if size is None:
+        raise ValueError(f"{what} {path.name} is missing or not a PNG")
+    if size != (shape[1], shape[0]):
+        raise ValueError(f"{what} {path.name} is {size[0]} x {size[1]} pixels, the recording's camera "
+                         f"{shape[1]} x {shape[0]}")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ValueError(f"{what} {path.name} is missing or not an image")
     if image.dtype != dtype or image.shape != shape:
@@ -138,8 +174,10 @@ def read_image(path: Path, shape: tuple, dtype, what: str) -> np.ndarray:
 def read_array(path: Path, shape: tuple, low: float, high: float, what: str) -> np.ndarray:
     try:
         array = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as error:
-        raise ValueError(f"{what} {path.name} is missing or unreadable ({error})") from None
+    except (OSError, ValueError, EOFError) as error:
+        raise ValueError(f"{what} {path.name} is missing or unreadable ({error or type(error).__name__})") from None
+    if not isinstance(array, np.ndarray):   # an .npz archive
+        raise ValueError(f"{what} {path.name} is not one .npy array")
     if array.shape != shape or array.dtype.kind != "f" or not np.all((array >= low) & (array <= high)):
         raise ValueError(f"{what} {path.name} must be {shape} floats in [{low}, {high}]")
     return array.astype(np.float32)
@@ -151,18 +189,20 @@ def read_recording(folder: Path, depth_source: str | None = None, masks: Path | 
     the float depth the simulated searcher consumed, "png" the logger's millimetres (default: exact if there)."""
     folder = Path(folder)
     try:
-        try:
-            meta = json.loads((folder / "recording.json").read_text())
-        except OSError:
-            raise ValueError(f"{str(folder)!r} holds no readable recording.json") from None
-        except json.JSONDecodeError as error:
-            raise ValueError(f"recording.json is not JSON (line {error.lineno}: {error.msg})") from None
+        meta = read_json(folder / "recording.json", "the recording's")
         if not isinstance(meta, dict) or meta.get("format") != RECORDING_FORMAT:
             raise ValueError(f"recording.json is not in the format {RECORDING_FORMAT!r}")
-        if meta.get("task") not in TASKS or not isinstance(meta.get("settings", {}), dict):
+        if not isinstance(meta.get("task"), str) or meta["task"] not in TASKS or not isinstance(
+                meta.get("settings", {}), dict):
             raise ValueError(f"recording.json: task must be one of {', '.join(TASKS)}, settings an object")
+        seed = meta.get("seed", 0)
+        if not (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed <= MAX_SEED):
+            raise ValueError(f"recording.json: seed must be a whole number in [0, {MAX_SEED}]")
+        tuples = {f.name for f in dataclasses.fields(Settings) if field_kind(f) == "tuple"}   # JSON has lists
+        settings = {k: tuple(v) if k in tuples and isinstance(v, list) else v
+                    for k, v in meta.get("settings", {}).items()}
         try:
-            cfg = checked_settings(meta["task"], meta.get("settings", {}))
+            cfg = checked_settings(meta["task"], settings)
         except ValueError as error:
             raise ValueError(f"recording.json settings: {error}") from None
         depth = checked_camera(meta.get("depth_camera"), "depth_camera")
@@ -180,8 +220,8 @@ def read_recording(folder: Path, depth_source: str | None = None, masks: Path | 
             raise ValueError(f"workspace_box_m must be the task's box, lo [{-half}, {-half}, 0] and hi "
                              f"[{half}, {half}, {cfg.ceiling_m}] in the workspace frame: set settings.workspace_m")
         area = meta.get("target_area_m2")
-        if area is not None and not (isinstance(area, (int, float)) and 0 < area < np.inf):
-            raise ValueError("target_area_m2 must be a positive number of m^2, or null when not told")
+        if area is not None and not (isinstance(area, (int, float)) and not isinstance(area, bool) and 0 < area < 1):
+            raise ValueError("target_area_m2 must be a target's surface in m^2, in (0, 1), or null when not told")
         count = meta.get("frames")
         if not isinstance(count, int) or count < 1:
             raise ValueError("recording.json: frames must be the number of frames, at least 1")
@@ -190,17 +230,19 @@ def read_recording(folder: Path, depth_source: str | None = None, masks: Path | 
             raise ValueError(f"frames/{max(named):06d}-* lies beyond the {count} frames recording.json lists")
         if depth_source is None:
             depth_source = "exact" if frame_file(folder, 0, "depth_m").is_file() else "png"
-        scale = float(meta.get("depth_png_m", DEPTH_PNG_M))
+        scale = meta.get("depth_png_m", DEPTH_PNG_M)
+        if not (isinstance(scale, (int, float)) and not isinstance(scale, bool) and 1e-6 <= scale <= 0.1):
+            raise ValueError("depth_png_m must be the metres of one unit of a depth PNG, in [1e-6, 0.1]")
         frames = []
         for i in range(count):
             if i not in named:
                 raise ValueError(f"frame {i} of {count} is missing (frames/{i:06d}-*)")
             try:
-                pose = json.loads(frame_file(folder, i, "pose").read_text())
+                pose = read_json(frame_file(folder, i, "pose"), f"frame {i}:")
                 T_base_tool = checked_transform(pose["T_base_tool"], f"frame {i}: T_base_tool")
                 T_base_depth = (checked_transform(pose["T_base_depth"], f"frame {i}: T_base_depth")
                                 if "T_base_depth" in pose else None)
-            except (OSError, json.JSONDecodeError, KeyError, TypeError) as error:
+            except (KeyError, TypeError) as error:
                 raise ValueError(f"frame {i}: {frame_file(folder, i, 'pose').name} is unreadable "
                                  f"({type(error).__name__}: {error})") from None
             colour = read_image(frame_file(folder, i, "color"), (rgb.height, rgb.width, 3), np.uint8, "colour image")
@@ -209,7 +251,7 @@ def read_recording(folder: Path, depth_source: str | None = None, masks: Path | 
                 depth_m = read_array(frame_file(folder, i, "depth_m"), depth_mm.shape, 0, np.inf, "depth")
                 detections = read_array(frame_file(folder, i, "detections"), colour.shape[:2], 0, 1, "detections")
             else:
-                depth_m, detections = depth_mm.astype(np.float32) * np.float32(scale), None
+                depth_m, detections = depth_mm.astype(np.float32) * np.float32(float(scale)), None
             if masks is not None:
                 mask = read_image(Path(masks) / f"{i:06d}.png", colour.shape[:2], np.uint8, "detection mask")
                 detections = mask.astype(np.float32) / 255
@@ -295,16 +337,41 @@ def cmd_record(args) -> int:
     return 0
 
 
+REPLAY_ORIGIN = ("recording", "agent", "weights", "depth", "masks", "seed")   # on every row of a replay's CSV
+
+
+def stored_replay_origin(path: Path) -> dict | None:
+    """What made the replay CSV at `path` (its first row's REPLAY_ORIGIN), or None if there is none yet."""
+    if not path.exists():
+        return None
+    try:
+        with open(path, newline="") as f:
+            row = next(csv.DictReader(f), None)
+        return {k: row[k] for k in REPLAY_ORIGIN}
+    except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError):
+        raise UsageError(f"{str(path)!r} is there and is not a replay's CSV: pass another --out") from None
+
+
 def cmd_play(args) -> int:
-    """Check the whole recording, then run it through ArmSearch and write the contact sheet and the CSV."""
-    cfg, rig, meta, frames = read_recording(Path(args.folder), args.depth, args.masks)
+    """Check the whole recording and the output, then run it through ArmSearch and write the contact sheet
+    and the CSV, whose rows say what made them; a replay never replaces another experiment's."""
+    folder = Path(args.folder)
+    cfg, rig, meta, frames = read_recording(folder, args.depth, args.masks)
     args.task = meta["task"]
     policy = agent_policy(args)
+    depth = args.depth or ("exact" if frame_file(folder, 0, "depth_m").is_file() else "png")
+    origin = dict(recording=str(folder.resolve()), agent=args.agent, weights=policy_fingerprint(policy), depth=depth,
+                  masks=str(Path(args.masks).resolve()) if args.masks else "none",
+                  seed=str(meta.get("seed", 0) if args.seed is None else args.seed))
     out = writable_folder(Path(args.out))
+    stem = out / f"replay-{folder.resolve().name}-{args.agent}-{depth}{'-masks' * bool(args.masks)}"
+    made = stored_replay_origin(stem.with_suffix(".csv"))
+    if made not in (None, origin):
+        raise UsageError(f"{stem.with_suffix('.csv')} was made by another replay ({made['recording']}, "
+                         f"{made['agent']}, weights {made['weights']}): pass another --out, or delete it")
     rows, states, pictures = replay(cfg, rig, meta, frames, args.agent, policy, args.seed)
-    stem = out / f"replay-{Path(args.folder).resolve().name}-{args.agent}"
     write_contact_sheet(stem.with_suffix(".png"), pictures)
-    write_csv(rows, stem.with_suffix(".csv"))
+    write_csv([dict(row, **origin) for row in rows], stem.with_suffix(".csv"))
     ending = "stopped" if rows[-1]["stop"] else "had not stopped when the frames ended"
     print(f"{args.agent} on {len(rows)} of {len(frames)} frames of {args.folder}: {ending}")
     recorded = recorded_actions(Path(args.folder))
@@ -334,7 +401,7 @@ def build_parser() -> ArgumentParser:
                               "the 16-bit millimetre depth and the colour detector (default exact where stored)")
     playing.add_argument("--masks", metavar="DIR", help="your detector's masks, DIR/NNNNNN.png per frame "
                          "(8-bit, the score x 255, the colour image's size): they replace the colour detector")
-    playing.add_argument("--out", default="out", help="folder for replay-NAME-AGENT.png and .csv (default out)")
+    playing.add_argument("--out", default="out", help="folder for replay-NAME-AGENT-DEPTH.png and .csv (default out)")
     playing.set_defaults(func=cmd_play)
     return parser
 

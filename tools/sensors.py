@@ -55,10 +55,12 @@ def run_sensor_study(out: Path, episodes: int, seed: int, workers: int) -> dict:
              for point in sensor_points() if point[0] in ("ideal", "rig camera")]
     policies = {row: learned_policy(row[0], row[1], row[2] and default_weights(*row[:2]).with_name(row[2]))
                 for row in {row for row, _ in runs} if row[0] in LEARNED}   # each checkpoint read once
-    for (agent, task, weights), (sweep, level, overrides) in runs:
+    stored = [stored_cell(out / point_file(agent, task, weights, sweep, level), seeds,   # every CSV checked first
+                          cell_origin(agent, task, "cubes", policies.get((agent, task, weights)), overrides))
+              for (agent, task, weights), (sweep, level, overrides) in runs]
+    for ((agent, task, weights), (sweep, level, overrides)), rows in zip(runs, stored):
         policy = policies.get((agent, task, weights))
         path = out / point_file(agent, task, weights, sweep, level)
-        rows = stored_cell(path, seeds, cell_origin(agent, task, "cubes", policy, overrides))
         if rows is None:
             rows = evaluate(agent, task, "cubes", episodes, seed, workers, policy=policy, overrides=overrides)
             write_csv(rows, path)

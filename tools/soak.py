@@ -179,7 +179,8 @@ def arm_soak_chunk(task: str, seed: int, frames: int) -> dict:
         depth, detections, T_tool, refusable = hostile_frame(rng, view, T_world_tool, searcher)
         counts["frames"] += 1
         try:
-            _, T_base_goal = search.step(depth, T_base_workspace @ T_tool, detections=detections)
+            with np.errstate(invalid="ignore", over="ignore"):   # a pose of inf, moved into the base frame
+                _, T_base_goal = search.step(depth, T_base_workspace @ T_tool, detections=detections)
         except ValueError as error:
             counts["refused"] += 1
             if not refusable:
@@ -222,8 +223,10 @@ def run_arm_soak(frames: int, workers: int, seed: int = 0, progress: bool = True
 def cmd_soak(args) -> int:
     t0 = time.perf_counter()
     counts = run_soak(args.episodes, args.workers, args.seed)
-    print(f"soak: {counts['episodes']} episodes, {counts['steps']} steps over {len(TASKS)} tasks x {len(SCENES)} scene "
-          f"kinds in {time.perf_counter() - t0:.0f} s; {counts['refused']} hostile actions refused; crashes "
+    kinds = min(args.episodes, len(TASKS) * len(SCENES))   # episode i plays kind i mod their number
+    print(f"soak: {counts['episodes']} episodes, {counts['steps']} steps over {kinds} of the {len(TASKS)} x "
+          f"{len(SCENES)} task and scene kinds in {time.perf_counter() - t0:.0f} s; {counts['refused']} hostile "
+          f"actions refused; crashes "
           f"{counts['crashes']}, non-finite observations or rewards {counts['non_finite']}, leaked connections "
           f"{counts['leaked']}")
     if counts["first_crash"]:
