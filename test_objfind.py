@@ -12,7 +12,6 @@ import cv2
 import gymnasium as gym
 import numpy as np
 import pytest
-import torch
 
 import objfind as of
 from tools import bench, sensors, soak, stops
@@ -2636,7 +2635,6 @@ def test_one_scene_fused_at_two_voxel_sizes_gives_the_same_share_and_nearly_the_
 def test_a_scheduler_stop_ends_an_eval_and_its_workers(tmp_path):
     """SIGTERM (what a cluster scheduler or `kill` sends) ends the command as Ctrl-C does: exit 130, no
     worker process left running."""
-    import os
     import signal
     import time
     run = subprocess.Popen([sys.executable, str(HERE / "objfind.py"), "eval", "--agent", "gnbv", "--episodes", "200",
