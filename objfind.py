@@ -291,8 +291,7 @@ LAYER_SLACK = 1e-3   # fuse_view: slack (pixels x m, or m) on the layers it visi
 
 
 def vector_norm(x: np.ndarray) -> np.ndarray:
-    """Lengths of (..., 3) vectors: np.linalg.norm's sums in its order, in a quarter of its time (its reduce
-    over a last axis of 3 is slow)."""
+    """Lengths of (..., 3) vectors: np.linalg.norm's sums in its order, in a quarter of its time."""
     return np.sqrt(x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2])
 
 
@@ -702,8 +701,7 @@ def wrist_rig(cfg: Settings) -> Rig:
 # ================================================================================================
 
 def target_observed(share: float, seen_threshold: float) -> bool:
-    """The target counts as observed once more than seen_threshold of its surface was seen (Sec. III-C, "more
-    than 20 %"): the one rule for the world's truth and for every agent's own estimate."""
+    """Sec. III-C's "more than 20 %" seen: the one rule for the world's truth and every agent's estimate."""
     return share > seen_threshold
 
 
@@ -2053,8 +2051,7 @@ def gae(rewards, values, dones, last_value, gamma: float, lam: float):
 
 
 def clipped_surrogate_loss(ratio: torch.Tensor, advantages: torch.Tensor, clip: float) -> torch.Tensor:
-    """-L^CLIP (Schulman et al. 2017, eq. 7): the ratio's gain is cut off once it leaves [1 - clip, 1 + clip]
-    in the advantage's favour, its loss never."""
+    """-L^CLIP (Schulman et al. 2017, eq. 7): a gain cut off outside [1 - clip, 1 + clip], a loss never."""
     return -torch.min(ratio * advantages, ratio.clamp(1 - clip, 1 + clip) * advantages).mean()
 
 
@@ -2644,8 +2641,7 @@ def ignore_sigint() -> None:
 
 
 def process_pool(workers: int, initializer=ignore_sigint, initargs=()) -> ProcessPoolExecutor:
-    """`workers` spawned processes that ignore Ctrl-C (the parent handles it); one that dies (killed, out
-    of memory) breaks the pool, so waiting on it raises BrokenProcessPool instead of hanging."""
+    """`workers` spawned processes that ignore Ctrl-C; one that dies raises BrokenProcessPool, never hangs."""
     return ProcessPoolExecutor(workers, multiprocessing.get_context("spawn"), initializer, initargs)
 
 
