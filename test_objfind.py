@@ -1078,6 +1078,17 @@ def test_a_resumed_run_repeats_the_next_update_exactly(tmp_path):
     assert same(straight["log"][-1]) == same(resumed["log"][-1])
 
 
+def test_the_progress_bar_shows_each_updates_own_rate(tmp_path, monkeypatch, capsys):
+    """On a clock that moves one second per reading, every update of 256 steps runs at 256 steps/s (the
+    cumulative steps over one update's time would read 512, then 768)."""
+    clock = iter(range(10 ** 6))
+    monkeypatch.setattr(of.time, "perf_counter", lambda: float(next(clock)))
+    of.train(Reach, tmp_path, total_steps=256 * 3, ppo=TINY_PPO, progress=True)
+    of.release_locks()
+    rates = re.findall(r"steps_per_s=(\d+)", capsys.readouterr().err)
+    assert len(rates) >= 3 and set(rates) == {"256"}, rates
+
+
 def test_the_learning_curve_has_labelled_ticks_on_both_axes(tmp_path):
     rows = [dict(env_steps=5000 * u, success=min(1.0, 0.3 + 0.01 * u), episode_length=40 - 0.2 * u)
             for u in range(1, 121)]
