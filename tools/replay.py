@@ -183,6 +183,11 @@ def read_array(path: Path, shape: tuple, low: float, high: float, what: str) -> 
     return array.astype(np.float32)
 
 
+def depth_source_of(folder: Path, asked: str | None) -> str:
+    """The depth a replay reads: the one asked for, else the exact float depth where it is stored, else the PNGs."""
+    return asked or ("exact" if frame_file(folder, 0, "depth_m").is_file() else "png")
+
+
 def read_recording(folder: Path, depth_source: str | None = None, masks: Path | None = None) -> tuple:
     """A recording, every file checked before anything runs: (settings, rig, meta, frames), each frame a dict
     of depth_m, rgb, detections (or None: the colour detector's) and the poses. depth_source "exact" reads
@@ -228,8 +233,7 @@ def read_recording(folder: Path, depth_source: str | None = None, masks: Path | 
         named = {int(p.name[:6]) for p in (folder / "frames").glob("[0-9]" * 6 + "-*")}
         if any(i >= count for i in named):
             raise ValueError(f"frames/{max(named):06d}-* lies beyond the {count} frames recording.json lists")
-        if depth_source is None:
-            depth_source = "exact" if frame_file(folder, 0, "depth_m").is_file() else "png"
+        depth_source = depth_source_of(folder, depth_source)
         scale = meta.get("depth_png_m", DEPTH_PNG_M)
         if not (isinstance(scale, (int, float)) and not isinstance(scale, bool) and 1e-6 <= scale <= 0.1):
             raise ValueError("depth_png_m must be the metres of one unit of a depth PNG, in [1e-6, 0.1]")
@@ -359,7 +363,7 @@ def cmd_play(args) -> int:
     cfg, rig, meta, frames = read_recording(folder, args.depth, args.masks)
     args.task = meta["task"]
     policy = agent_policy(args)
-    depth = args.depth or ("exact" if frame_file(folder, 0, "depth_m").is_file() else "png")
+    depth = depth_source_of(folder, args.depth)
     origin = dict(recording=str(folder.resolve()), agent=args.agent, weights=policy_fingerprint(policy), depth=depth,
                   masks=str(Path(args.masks).resolve()) if args.masks else "none",
                   seed=str(meta.get("seed", 0) if args.seed is None else args.seed))
