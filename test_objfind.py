@@ -1718,6 +1718,24 @@ def test_a_new_ppo_setting_is_one_field_and_round_trips_through_a_checkpoint_and
     assert "momentum" in capsys.readouterr().err and not (tmp_path / "bad").exists()
 
 
+def test_a_run_keeps_its_schedule_and_the_schedule_moves_linearly_from_start_to_end(tmp_path):
+    run = tmp_path / "run"
+    small = ["--set", "batch_steps=32", "--set", "hidden=8", "--set", "minibatch=16", "--set", "epochs=1"]
+    assert of.main(["train", "--task", "ap", "--out", str(run), "--steps", "32", "--streams", "1", "--workers", "1",
+                    "--set", "entropy_end_ratio=0.1", "--set", "learning_rate_end_ratio=0.5", *small]) == 0
+    checkpoint = of.read_checkpoint(run / "checkpoint.pt", run=True)
+    assert checkpoint["schedule_steps"] == 32 and checkpoint["update"] == 1
+    ppo = of.ppo_settings(checkpoint["settings"])
+    assert (ppo.entropy_end_ratio, ppo.learning_rate_end_ratio) == (0.1, 0.5)
+    optimizer = torch.optim.Adam(of.ActorCritic(of.STATE_SIZE, ppo).parameters(), lr=ppo.learning_rate)
+    for done_share, entropy_share, lr_share in ((0.0, 1.0, 1.0), (0.5, 0.55, 0.75), (1.0, 0.1, 0.5)):
+        now = of.scheduled(ppo, optimizer, done_share)
+        assert now.entropy_coef == pytest.approx(ppo.entropy_coef * entropy_share)
+        assert optimizer.param_groups[0]["lr"] == pytest.approx(ppo.learning_rate * lr_share)
+    assert of.scheduled(of.PPOSettings(), optimizer, 0.7).entropy_coef == of.PPOSettings().entropy_coef * (
+        1 + (of.PPOSettings().entropy_end_ratio - 1) * 0.7)   # the defaults are a schedule too
+
+
 def test_train_runs_in_a_fresh_clone(tmp_path):
     listed = subprocess.run(["git", "ls-files"], cwd=HERE, capture_output=True, text=True)
     if listed.returncode != 0:
