@@ -735,6 +735,15 @@ def test_constructor_seed_makes_the_first_reset_reproducible():
         a.close(), b.close()
 
 
+def test_the_training_bench_splits_a_runs_time_into_parts_and_leaves_train_as_it_was():
+    before = (of.collect_rollout, of.ppo_update, of.write_csv, of.ObjectFindingEnv.step, of.ActorCritic.evaluate)
+    parts = bench.bench_training("ap", 2, 1, of.PPOSettings(batch_steps=200, minibatch=100, epochs=1))
+    assert all(parts[k] > 0 for k in bench.TRAINING_PARTS_ORDER[:-1]) and parts["other"] >= 0
+    assert sum(parts[k] for k in bench.TRAINING_PARTS_ORDER) == pytest.approx(parts["total"])
+    assert parts["env steps"] > parts["policy forward"]      # 400 steps of physics, rendering and fusion
+    assert (of.collect_rollout, of.ppo_update, of.write_csv, of.ObjectFindingEnv.step, of.ActorCritic.evaluate) == before
+
+
 @pytest.mark.parametrize("scene", ["cubes", "object-models"])
 def test_bench_stages_account_for_the_step_and_the_reset(scene):
     means = bench.bench_stages("ap", scene, 20)

@@ -1,10 +1,15 @@
 """Bench: where the time of one env step and of a reset goes, stage by stage, and env steps/s over worker
-processes. Another load on the machine only adds time, so each figure is the best of --repeats runs.
+processes. Another load on the machine only adds time, so each figure is the best of --repeats runs. With
+--training: where a second of `train` goes (env steps, resets, the policy's forward pass, the PPO update,
+the bookkeeping), in one process and with --workers worker processes.
 
     python tools/bench.py [--scene cubes] [--steps 300] [--workers 2] [--repeats 3]
+    python tools/bench.py --training [--updates 5] [--workers 2]
 """
+import functools
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -12,8 +17,9 @@ import numpy as np
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from objfind import (ACTION_MOVES, SCENES, ArgumentParser, ObjectFindingEnv, process_pool, run_cli,  # noqa: E402
-                     steps_arg, whole_number_arg, workers_arg)
+import objfind  # noqa: E402
+from objfind import (ACTION_MOVES, SCENES, ActorCritic, ArgumentParser, ObjectFindingEnv, PPOSettings,  # noqa: E402
+                     process_pool, run_cli, steps_arg, whole_number_arg, workers_arg)
 
 
 def exploring_actions(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -109,7 +115,83 @@ def run_bench(steps: int, workers: int, repeats: int = 3, scenes: tuple = SCENES
     return "\n".join(lines + throughput)
 
 
+TRAINING_PARTS = (   # what a part of a training second is timed by, and whether only while collecting rollouts
+    ("env steps", ObjectFindingEnv, "step", False), ("resets", ObjectFindingEnv, "reset", False),
+    ("policy forward", ActorCritic, "distributions", True), ("policy forward", ActorCritic, "evaluate", True),
+    ("policy forward", ActorCritic, "value", True), ("PPO update", objfind, "ppo_update", False),
+    ("bookkeeping", objfind, "write_csv", False), ("bookkeeping", objfind, "save_checkpoint", False),
+    ("bookkeeping", objfind, "plot_learning_curve", False))
+
+
+def bench_training(task: str, updates: int, workers: int, ppo: PPOSettings = PPOSettings()) -> dict:
+    """Seconds of `updates` PPO updates of `train` on task/cubes, in all and by part (in this process: with
+    workers > 1 the env steps, resets and forward passes run in the workers, and the rest of a second waits
+    for them). The parts are timed by wrapping the functions `train` calls; "other" is what is left."""
+    totals, collecting = dict.fromkeys([part for part, *_ in TRAINING_PARTS] + ["total"], 0.0), [False]
+    originals = [(owner, name, getattr(owner, name)) for _, owner, name, _ in TRAINING_PARTS + (
+        (None, objfind, "collect_rollout", None),)]
+
+    active = set()   # the parts being timed: a call inside another of its part (evaluate's) counts once
+
+    def timed(part, method, only_collecting):
+        def run(*args, **kwargs):
+            if (only_collecting and not collecting[0]) or part in active:
+                return method(*args, **kwargs)
+            active.add(part)
+            t0 = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                totals[part] += time.perf_counter() - t0
+                active.discard(part)
+        return run
+
+    def collecting_rollout(*args, **kwargs):
+        collecting[0] = True
+        try:
+            return originals[-1][2](*args, **kwargs)
+        finally:
+            collecting[0] = False
+    try:
+        for part, owner, name, only_collecting in TRAINING_PARTS:
+            setattr(owner, name, timed(part, getattr(owner, name), only_collecting))
+        objfind.collect_rollout = collecting_rollout
+        with tempfile.TemporaryDirectory() as out:
+            t0 = time.perf_counter()
+            objfind.train(functools.partial(ObjectFindingEnv, task, "cubes"), Path(out) / "run", updates * ppo.batch_steps, ppo,
+                          workers=workers, progress=False, streams=objfind.DEFAULT_STREAMS)
+            totals["total"] = time.perf_counter() - t0
+    finally:
+        for owner, name, method in originals:
+            setattr(owner, name, method)
+    totals["other"] = totals["total"] - sum(v for k, v in totals.items() if k != "total")
+    return totals
+
+
+def training_markdown(task: str, updates: int, workers: int) -> str:
+    """Where a second of training goes, in one process and with `workers` worker processes."""
+    lines = [f"Where a second of `train --task {task}` goes: {updates} updates of {PPOSettings().batch_steps} env "
+             f"steps on {os.cpu_count()} cores, seconds (share of the total):", "",
+             "| worker processes | env steps/s | " + " | ".join(k for k in TRAINING_PARTS_ORDER) + " | total |",
+             "|---" * (len(TRAINING_PARTS_ORDER) + 3) + "|"]
+    for n in sorted({1, workers}):
+        parts = bench_training(task, updates, n)
+        lines.append(f"| {n} | {updates * PPOSettings().batch_steps / parts['total']:.0f} | "
+                     + " | ".join(f"{parts[k]:.1f} ({100 * parts[k] / parts['total']:.0f} %)"
+                                  for k in TRAINING_PARTS_ORDER) + f" | {parts['total']:.1f} |")
+    lines.append("")
+    lines.append("With worker processes, env steps, resets and forward passes run in the workers and are not "
+                 "seen here: their wait is in \"other\".")
+    return "\n".join(lines)
+
+
+TRAINING_PARTS_ORDER = ("env steps", "resets", "policy forward", "PPO update", "bookkeeping", "other")
+
+
 def cmd_bench(args) -> int:
+    if args.training:
+        print(training_markdown("ap", args.updates, args.workers))
+        return 0
     print(run_bench(args.steps, args.workers, args.repeats, SCENES if args.scene == "all" else (args.scene,)))
     return 0
 
@@ -122,6 +204,9 @@ def build_parser() -> ArgumentParser:
                         help="processes for the throughput rows (default all cores)")
     parser.add_argument("--repeats", type=whole_number_arg(1, 100, "repeats"), default=3,
                         help="report the best of this many runs")
+    parser.add_argument("--training", action="store_true", help="where a second of train --task ap goes instead")
+    parser.add_argument("--updates", type=whole_number_arg(1, 1000, "updates"), default=5,
+                        help="with --training: PPO updates per measurement (default 5)")
     parser.set_defaults(func=cmd_bench)
     return parser
 
