@@ -1038,11 +1038,14 @@ class ActorCritic(nn.Module):
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         return self.critic(self.normalise(obs))[:, 0]
 
+    def log_prob(self, move, stop, raw: torch.Tensor) -> torch.Tensor:
+        """Log-probability of raw actions (5 displacements, terminate bit) under the policy's distributions."""
+        return move.log_prob(raw[:, :self.moves]).sum(1) + stop.log_prob(raw[:, self.moves])
+
     def evaluate(self, obs: torch.Tensor, raw: torch.Tensor):
-        """Log-probability and entropy of raw actions (5 displacements, terminate bit) under the policy."""
+        """Log-probability and entropy of raw actions under the policy."""
         move, stop = self.distributions(obs)
-        logp = move.log_prob(raw[:, :self.moves]).sum(1) + stop.log_prob(raw[:, self.moves])
-        return logp, move.entropy().sum(1) + stop.entropy()
+        return self.log_prob(move, stop, raw), move.entropy().sum(1) + stop.entropy()
 
 
 def env_actions(raw: np.ndarray) -> np.ndarray:
@@ -2102,7 +2105,7 @@ def collect_rollout(env, model: ActorCritic, steps: int, env_seed: int, sample_s
             move, stop = model.distributions(obs_t)
             raw = torch.cat([move.mean + move.stddev * torch.randn(move.mean.shape, generator=generator),
                              torch.bernoulli(stop.probs, generator=generator)[:, None]], 1)
-            logp, _ = model.evaluate(obs_t, raw)
+            logp = model.log_prob(move, stop, raw)   # the distributions just sampled: one forward pass
             value = model.value(obs_t)
         next_obs, reward, terminated, truncated, info = env.step(env_actions(raw.numpy())[0])
         for k, v in (("obs", obs), ("raw", raw[0].numpy()), ("logp", logp.item()), ("values", value.item()),
