@@ -117,39 +117,36 @@ def run_bench(steps: int, workers: int, repeats: int = 3, scenes: tuple = SCENES
 
 TRAINING_PARTS = (   # what a part of a training second is timed by, and whether only while collecting rollouts
     ("env steps", ObjectFindingEnv, "step", False), ("resets", ObjectFindingEnv, "reset", False),
-    ("policy forward", ActorCritic, "distributions", True), ("policy forward", ActorCritic, "evaluate", True),
-    ("policy forward", ActorCritic, "value", True), ("PPO update", objfind, "ppo_update", False),
-    ("bookkeeping", objfind, "write_csv", False), ("bookkeeping", objfind, "save_checkpoint", False),
-    ("bookkeeping", objfind, "plot_learning_curve", False))
+    ("policy forward", ActorCritic, "distributions", True), ("policy forward", ActorCritic, "value", True),
+    ("PPO update", objfind, "ppo_update", False), ("bookkeeping", objfind, "write_csv", False),
+    ("bookkeeping", objfind, "save_checkpoint", False), ("bookkeeping", objfind, "plot_learning_curve", False))
+TRAINING_PARTS_ORDER = ("env steps", "resets", "policy forward", "PPO update", "bookkeeping", "other")
 
 
 def bench_training(task: str, updates: int, workers: int, ppo: PPOSettings = PPOSettings()) -> dict:
     """Seconds of `updates` PPO updates of `train` on task/cubes, in all and by part (in this process: with
     workers > 1 the env steps, resets and forward passes run in the workers, and the rest of a second waits
     for them). The parts are timed by wrapping the functions `train` calls; "other" is what is left."""
-    totals, collecting = dict.fromkeys([part for part, *_ in TRAINING_PARTS] + ["total"], 0.0), [False]
-    originals = [(owner, name, getattr(owner, name)) for _, owner, name, _ in TRAINING_PARTS + (
-        (None, objfind, "collect_rollout", None),)]
-
-    active = set()   # the parts being timed: a call inside another of its part (evaluate's) counts once
+    totals, collecting = dict.fromkeys(TRAINING_PARTS_ORDER[:-1] + ("total",), 0.0), [False]
+    collect_rollout = objfind.collect_rollout
+    originals = [(owner, name, getattr(owner, name)) for _, owner, name, _ in TRAINING_PARTS]
+    originals.append((objfind, "collect_rollout", collect_rollout))
 
     def timed(part, method, only_collecting):
         def run(*args, **kwargs):
-            if (only_collecting and not collecting[0]) or part in active:
+            if only_collecting and not collecting[0]:
                 return method(*args, **kwargs)
-            active.add(part)
             t0 = time.perf_counter()
             try:
                 return method(*args, **kwargs)
             finally:
                 totals[part] += time.perf_counter() - t0
-                active.discard(part)
         return run
 
     def collecting_rollout(*args, **kwargs):
         collecting[0] = True
         try:
-            return originals[-1][2](*args, **kwargs)
+            return collect_rollout(*args, **kwargs)
         finally:
             collecting[0] = False
     try:
@@ -158,8 +155,9 @@ def bench_training(task: str, updates: int, workers: int, ppo: PPOSettings = PPO
         objfind.collect_rollout = collecting_rollout
         with tempfile.TemporaryDirectory() as out:
             t0 = time.perf_counter()
-            objfind.train(functools.partial(ObjectFindingEnv, task, "cubes"), Path(out) / "run", updates * ppo.batch_steps, ppo,
-                          workers=workers, progress=False, streams=objfind.DEFAULT_STREAMS)
+            objfind.train(functools.partial(ObjectFindingEnv, task, "cubes"), Path(out) / "run",
+                          updates * ppo.batch_steps, ppo, workers=workers, progress=False,
+                          streams=objfind.DEFAULT_STREAMS)
             totals["total"] = time.perf_counter() - t0
     finally:
         for owner, name, method in originals:
@@ -172,7 +170,7 @@ def training_markdown(task: str, updates: int, workers: int) -> str:
     """Where a second of training goes, in one process and with `workers` worker processes."""
     lines = [f"Where a second of `train --task {task}` goes: {updates} updates of {PPOSettings().batch_steps} env "
              f"steps on {os.cpu_count()} cores, seconds (share of the total):", "",
-             "| worker processes | env steps/s | " + " | ".join(k for k in TRAINING_PARTS_ORDER) + " | total |",
+             "| worker processes | env steps/s | " + " | ".join(TRAINING_PARTS_ORDER) + " | total |",
              "|---" * (len(TRAINING_PARTS_ORDER) + 3) + "|"]
     for n in sorted({1, workers}):
         parts = bench_training(task, updates, n)
@@ -183,9 +181,6 @@ def training_markdown(task: str, updates: int, workers: int) -> str:
     lines.append("With worker processes, env steps, resets and forward passes run in the workers and are not "
                  "seen here: their wait is in \"other\".")
     return "\n".join(lines)
-
-
-TRAINING_PARTS_ORDER = ("env steps", "resets", "policy forward", "PPO update", "bookkeeping", "other")
 
 
 def cmd_bench(args) -> int:
