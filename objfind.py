@@ -3428,7 +3428,7 @@ def run_demo(agent_name: str, task: str, scene: str, seed: int, out_dir: Path,
 
 
 # ================================================================================================
-# Command line: demo, eval, train, bench and soak. Bad input ends with one line and exit status 2.
+# Command line: train, eval and demo. Bad input ends with one line and exit status 2.
 # ================================================================================================
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -3440,7 +3440,7 @@ class ArgumentParser(argparse.ArgumentParser):
 MAX_SEED = 2 ** 32 - 1          # seeds torch and numpy alike; a scene's seed is seed + episode index
 MAX_EPISODES = 1_000_000        # seed lists and jobs are made up front
 MAX_WORKERS = 4 * (os.cpu_count() or 1)   # more processes only add memory (about 250 MB each)
-MAX_STEPS = 10 ** 10            # train's --steps, bench's steps per measurement
+MAX_STEPS = 10 ** 10            # train's --steps (tools/bench.py's steps per measurement too)
 
 
 def whole_number_arg(minimum: int, maximum: int, meaning: str):
