@@ -259,8 +259,9 @@ class PPOSettings:
     adam_eps: float = 1e-5             # Adam's epsilon, as in OpenAI Baselines' PPO2
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
-    entropy_end_ratio: float = 1.0     # the entropy bonus and the learning rate go linearly over the run's
-    learning_rate_end_ratio: float = 1.0   # --steps to these shares of their values (1: constant; `scheduled`)
+    entropy_end_ratio: float = 1.0     # the entropy bonus and the learning rate go linearly over the first
+    learning_rate_end_ratio: float = 1.0   # schedule_share of the run's --steps to these shares of their values,
+    schedule_share: float = 1.0        # then stay there (1, 1: constant; `scheduled`; train's TRAIN_RECIPES)
 
 
 # ================================================================================================
@@ -2129,7 +2130,8 @@ def derived_seed(*key: int) -> int:
 
 def scheduled(ppo: PPOSettings, optimizer, done_share: float) -> PPOSettings:
     """The settings of an update `done_share` of the way through a run: the entropy bonus and Adam's learning
-    rate moved linearly from their values towards their *_end_ratio shares of them."""
+    rate moved linearly from their values to their *_end_ratio shares of them, reached at schedule_share."""
+    done_share = min(1.0, done_share / ppo.schedule_share)
     for group in optimizer.param_groups:
         group["lr"] = ppo.learning_rate * (1 + (ppo.learning_rate_end_ratio - 1) * done_share)
     return dataclasses.replace(ppo, entropy_coef=ppo.entropy_coef * (1 + (ppo.entropy_end_ratio - 1) * done_share))
@@ -2228,7 +2230,7 @@ PPO_RANGES = {
     "learning_rate": "(0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "reward_scale": "(0, inf)",
     "init_terminate_prob": "[1e-6, 0.999999]", "init_log_std": "[-10, 2]", "adam_eps": "(0, inf)",
     "obs_clip": "(0, inf)", "checkpoint_every": "[1, inf)", "entropy_end_ratio": "[0, 10]",
-    "learning_rate_end_ratio": "[0, 10]"}
+    "learning_rate_end_ratio": "[0, 10]", "schedule_share": "(0, 1]"}
 
 
 def in_interval(value: float, interval: str) -> bool:
@@ -3480,6 +3482,12 @@ def setting_arg(settings: type):
     return parse
 
 
+# What `train` runs without --steps and --set: env steps and PPOSettings per learned agent, the paper's two
+# phases as one schedule (the entropy bonus to a tenth); ap-large trains as ap, ip-real as ip (weights/README.md)
+TRAIN_RECIPES = {"a3de": (1_200_000, dict(entropy_end_ratio=0.1)),
+                 "i3de": (1_350_000, dict(entropy_end_ratio=0.1, schedule_share=0.25))}
+
+
 def default_task(agent: str) -> str:
     """The task an agent runs on without --task: the interactive agents on ip, the rest on ap."""
     return "ip" if agent in ("ges", "i3de") else "ap"
@@ -3619,7 +3627,9 @@ def cmd_train(args) -> int:
         checked_settings(args.task, world)
     except ValueError as error:
         raise UsageError(f"--world: {error}") from None
-    ppo = ppo_settings(dict(args.set or []))
+    recipe_steps, recipe = TRAIN_RECIPES["i3de" if TASKS[args.task].num_piles else "a3de"]
+    args.steps = args.steps or (run.get("schedule_steps", recipe_steps) if run else recipe_steps)
+    ppo = ppo_settings({**recipe, **dict(args.set or [])})
     init = read_checkpoint(Path(args.init)) if args.init else None
     if args.ray:   # asked before any work: an address nobody answers is one line
         connect_ray(args.ray)
@@ -3679,8 +3689,9 @@ def build_parser() -> ArgumentParser:
     training.add_argument("--streams", type=whole_number_arg(1, MAX_STREAMS, "the number of rollout streams"),
                           help=f"rollout streams a new run splits each PPO batch into (default {DEFAULT_STREAMS}); "
                                "kept in the checkpoint, so the run repeats exactly on any number of processes")
-    training.add_argument("--steps", type=steps_arg, default=2_000_000,
-                          help="env steps in all, counting those of a resumed run (default 2000000)")
+    training.add_argument("--steps", type=steps_arg,
+                          help="env steps in all, counting those of a resumed run (default: the task's recipe, "
+                               "TRAIN_RECIPES; with --resume, the run's own)")
     training.add_argument("--seed", type=seed_arg,
                           help="seeds the network, and each update's env resets and samples (default 0)")
     training.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
@@ -3690,7 +3701,8 @@ def build_parser() -> ArgumentParser:
     training.add_argument("--resume", action="store_true",
                           help="continue the run in --out from its checkpoint, with the settings it started with")
     training.add_argument("--set", type=setting_arg(PPOSettings), action="append", metavar="NAME=VALUE",
-                          help="change a PPOSettings field for a new run (repeatable), e.g. entropy_coef=0.003")
+                          help="change a PPOSettings field of the task's recipe (TRAIN_RECIPES) for a new run "
+                               "(repeatable), e.g. entropy_coef=0.003")
     training.add_argument("--world", type=setting_arg(Settings), action="append", metavar="NAME=VALUE",
                           help="change a Settings field of the training world for a new run (repeatable), e.g. "
                                "tof_noise_ratio=0.01 or sensor_error_scale=0,2 (weights/README.md)")
