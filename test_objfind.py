@@ -1743,6 +1743,30 @@ def test_a_run_keeps_its_schedule_and_the_schedule_moves_linearly_from_start_to_
         assert optimizer.param_groups[0]["lr"] == pytest.approx(ppo.learning_rate * lr_share)
     assert of.scheduled(of.PPOSettings(), optimizer, 0.7).entropy_coef == of.PPOSettings().entropy_coef * (
         1 + (of.PPOSettings().entropy_end_ratio - 1) * 0.7)   # the defaults are a schedule too
+    half = dataclasses.replace(ppo, schedule_share=0.5)      # the schedule ends half-way and holds
+    for done_share, entropy_share in ((0.0, 1.0), (0.25, 0.55), (0.5, 0.1), (0.75, 0.1), (1.0, 0.1)):
+        assert of.scheduled(half, optimizer, done_share).entropy_coef == pytest.approx(ppo.entropy_coef * entropy_share)
+
+
+def test_train_with_no_flags_runs_its_agents_recipe_and_set_and_resume_change_it(tmp_path, monkeypatch):
+    asked = []
+    monkeypatch.setattr(of, "train", lambda make_env, out, steps, ppo, **kwargs: asked.append((steps, ppo)) or
+                        {"env_steps": steps, "update": 1})
+    for task, agent in (("ap", "a3de"), ("ap-large", "a3de"), ("ip", "i3de"), ("ip-real", "i3de")):
+        assert of.main(["train", "--task", task, "--out", str(tmp_path / task)]) == 0
+        steps, recipe = of.TRAIN_RECIPES[agent]
+        assert asked[-1] == (steps, of.ppo_settings(recipe))
+    assert asked[0][1].entropy_end_ratio < 1 and asked[2][1].schedule_share < 1     # the recipes are schedules
+    assert of.main(["train", "--task", "ip", "--out", str(tmp_path / "set"), "--steps", "500",
+                    "--set", "schedule_share=0.5"]) == 0
+    assert asked[-1] == (500, of.ppo_settings({**of.TRAIN_RECIPES["i3de"][1], "schedule_share": 0.5}))
+    run = tmp_path / "resumed"
+    run.mkdir()
+    torch.save({"task": "ip", "scene": "cubes", "schedule_steps": 777, "update": 3, "env_steps": 15,
+                "settings": dataclasses.asdict(of.PPOSettings())}, run / "checkpoint.pt")
+    monkeypatch.setattr(of, "read_checkpoint", lambda path, run=False: torch.load(path, weights_only=True))
+    assert of.main(["train", "--resume", "--out", str(run)]) == 0
+    assert asked[-1][0] == 777                                                      # its own schedule's length
 
 
 def test_train_runs_in_a_fresh_clone(tmp_path):
