@@ -255,7 +255,6 @@ class PPOSettings:
     max_grad_norm: float = 0.5         # gradient clipping
     reward_scale: float = 1 / 150      # rewards divided by r_d: returns of order one for the critic
     init_log_std: float = -0.5         # initial std 0.6 of the five displacements (the Box is [-1, 1])
-    max_log_std: float = 2.0           # a cap on it after each step (clipped moves make a wider std free)
     init_terminate_prob: float = 0.02  # a fresh policy that terminated half the time would never look
     adam_eps: float = 1e-5             # Adam's epsilon, as in OpenAI Baselines' PPO2
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
@@ -2081,8 +2080,6 @@ def ppo_update(model: ActorCritic, optimizer, batch: dict, ppo: PPOSettings, gen
             loss.backward()
             nn.utils.clip_grad_norm_(model.parameters(), ppo.max_grad_norm)
             optimizer.step()
-            with torch.no_grad():
-                model.log_std.clamp_(max=ppo.max_log_std)
             if not (torch.isfinite(loss) and model.sound()):
                 raise FloatingPointError("a non-finite loss, weight or std")   # train stops, keeping the last update
             with torch.no_grad():
@@ -2231,7 +2228,7 @@ PPO_RANGES = {
     "hidden": "[1, 1024]", "batch_steps": "[1, 1000000]", "epochs": "[1, 1000]", "minibatch": "[1, inf)",
     "gamma": "(0, 1]", "entropy_coef": "[0, inf)", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
     "learning_rate": "(0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "reward_scale": "(0, inf)",
-    "init_terminate_prob": "[1e-6, 0.999999]", "init_log_std": "[-10, 2]", "max_log_std": "[-10, 2]", "adam_eps": "(0, inf)",
+    "init_terminate_prob": "[1e-6, 0.999999]", "init_log_std": "[-10, 2]", "adam_eps": "(0, inf)",
     "obs_clip": "(0, inf)", "checkpoint_every": "[1, inf)", "entropy_end_ratio": "[0, 10]",
     "learning_rate_end_ratio": "[0, 10]", "schedule_share": "(0, 1]"}
 

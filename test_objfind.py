@@ -1047,15 +1047,6 @@ def test_ppo_improves_the_return_of_a_tiny_reach_task(tmp_path):
     assert len(of.read_train_log(tmp_path / "log.csv", 25)) == 25
 
 
-def test_the_std_cap_holds_the_displacements_std_where_the_entropy_bonus_would_widen_it(tmp_path):
-    widening = dataclasses.replace(TINY_PPO, entropy_coef=1.0)
-    def log_std(out, ppo):
-        of.train(Reach, tmp_path / out, total_steps=256 * 2, ppo=ppo, progress=False)
-        return of.read_checkpoint(tmp_path / out / "checkpoint.pt")["model"]["log_std"]
-    assert log_std("free", widening).max() > -0.45
-    assert log_std("capped", dataclasses.replace(widening, max_log_std=-0.5)).max() <= -0.5
-
-
 def test_a_warm_start_begins_from_the_trained_policy(tmp_path):
     trained = of.train(Reach, tmp_path / "a", total_steps=256 * 20, ppo=TINY_PPO, progress=False)
     init = of.read_checkpoint(tmp_path / "a" / "checkpoint.pt")
