@@ -259,9 +259,10 @@ class PPOSettings:
     adam_eps: float = 1e-5             # Adam's epsilon, as in OpenAI Baselines' PPO2
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
-    entropy_end_ratio: float = 1.0     # the entropy bonus and the learning rate go linearly over the first
-    learning_rate_end_ratio: float = 1.0   # schedule_share of the run's --steps to these shares of their values,
-    schedule_share: float = 1.0        # then stay there (1, 1: constant; `scheduled`; train's TRAIN_RECIPES)
+    entropy_end_ratio: float = 1.0     # the entropy bonus and the learning rate go linearly, from
+    learning_rate_end_ratio: float = 1.0   # schedule_start_share to schedule_share of the run's --steps, to these
+    schedule_start_share: float = 0.0  # shares of their values, then stay there (1, 1: constant; `scheduled`;
+    schedule_share: float = 1.0        # train's TRAIN_RECIPES)
 
 
 # ================================================================================================
@@ -2130,8 +2131,9 @@ def derived_seed(*key: int) -> int:
 
 def scheduled(ppo: PPOSettings, optimizer, done_share: float) -> PPOSettings:
     """The settings of an update `done_share` of the way through a run: the entropy bonus and Adam's learning
-    rate moved linearly from their values to their *_end_ratio shares of them, reached at schedule_share."""
-    done_share = min(1.0, done_share / ppo.schedule_share)
+    rate held until schedule_start_share, then moved linearly to their *_end_ratio shares, reached at schedule_share."""
+    start, end = ppo.schedule_start_share, ppo.schedule_share
+    done_share = min(1.0, max(0.0, done_share - start) / (end - start))
     for group in optimizer.param_groups:
         group["lr"] = ppo.learning_rate * (1 + (ppo.learning_rate_end_ratio - 1) * done_share)
     return dataclasses.replace(ppo, entropy_coef=ppo.entropy_coef * (1 + (ppo.entropy_end_ratio - 1) * done_share))
@@ -2230,7 +2232,7 @@ PPO_RANGES = {
     "learning_rate": "(0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "reward_scale": "(0, inf)",
     "init_terminate_prob": "[1e-6, 0.999999]", "init_log_std": "[-10, 2]", "adam_eps": "(0, inf)",
     "obs_clip": "(0, inf)", "checkpoint_every": "[1, inf)", "entropy_end_ratio": "[0, 10]",
-    "learning_rate_end_ratio": "[0, 10]", "schedule_share": "(0, 1]"}
+    "learning_rate_end_ratio": "[0, 10]", "schedule_start_share": "[0, 1)", "schedule_share": "(0, 1]"}
 
 
 def in_interval(value: float, interval: str) -> bool:
@@ -2417,6 +2419,8 @@ def ppo_settings(values: dict) -> PPOSettings:
     try:
         ppo = PPOSettings(**values)
         check_fields(ppo, PPO_RANGES, "(-inf, inf)")
+        if ppo.schedule_start_share >= ppo.schedule_share:
+            raise ValueError(f"schedule_start_share={ppo.schedule_start_share}: it must be below schedule_share")
     except ValueError as error:
         raise UsageError(f"PPO setting {error}") from None
     return ppo

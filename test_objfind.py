@@ -1746,6 +1746,11 @@ def test_a_run_keeps_its_schedule_and_the_schedule_moves_linearly_from_start_to_
     half = dataclasses.replace(ppo, schedule_share=0.5)      # the schedule ends half-way and holds
     for done_share, entropy_share in ((0.0, 1.0), (0.25, 0.55), (0.5, 0.1), (0.75, 0.1), (1.0, 0.1)):
         assert of.scheduled(half, optimizer, done_share).entropy_coef == pytest.approx(ppo.entropy_coef * entropy_share)
+    late = dataclasses.replace(ppo, schedule_start_share=0.5)   # holds half-way, then moves to the end
+    for done_share, entropy_share in ((0.0, 1.0), (0.5, 1.0), (0.75, 0.55), (1.0, 0.1)):
+        assert of.scheduled(late, optimizer, done_share).entropy_coef == pytest.approx(ppo.entropy_coef * entropy_share)
+    with pytest.raises(of.UsageError, match="schedule_start_share"):
+        of.ppo_settings({"schedule_start_share": 0.5, "schedule_share": 0.5})
 
 
 def test_train_with_no_flags_runs_its_agents_recipe_and_set_and_resume_change_it(tmp_path, monkeypatch):
