@@ -3486,9 +3486,9 @@ def setting_arg(settings: type):
     return parse
 
 
-# What `train` runs without --steps and --set: env steps and PPOSettings per learned agent, the paper's two
-# phases as one schedule (the entropy bonus to a tenth); ap-large trains as ap, ip-real as ip (weights/README.md)
-TRAIN_RECIPES = {"a3de": (1_200_000, dict(entropy_end_ratio=0.1)),
+# What `train` runs without --steps and --set: env steps and PPOSettings per learned agent, two phases as one
+# schedule (the entropy bonus held, then to a tenth); ap-large trains as ap, ip-real as ip (weights/README.md)
+TRAIN_RECIPES = {"a3de": (1_200_000, dict(entropy_end_ratio=0.1, schedule_start_share=0.8, schedule_share=0.85)),
                  "i3de": (1_350_000, dict(entropy_end_ratio=0.1, schedule_share=0.25))}
 
 
