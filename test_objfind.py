@@ -1736,13 +1736,16 @@ def test_a_run_keeps_its_schedule_and_the_schedule_moves_linearly_from_start_to_
     assert checkpoint["schedule_steps"] == 32 and checkpoint["update"] == 1
     ppo = of.ppo_settings(checkpoint["settings"])
     assert (ppo.entropy_end_ratio, ppo.learning_rate_end_ratio) == (0.1, 0.5)
+    assert (ppo.schedule_start_share, ppo.schedule_share) == (0.8, 0.85)      # the recipe's, kept
     optimizer = torch.optim.Adam(of.ActorCritic(of.STATE_SIZE, ppo).parameters(), lr=ppo.learning_rate)
-    for done_share, entropy_share, lr_share in ((0.0, 1.0, 1.0), (0.5, 0.55, 0.75), (1.0, 0.1, 0.5)):
+    for done_share, entropy_share, lr_share in ((0.0, 1.0, 1.0), (0.8, 1.0, 1.0), (0.825, 0.55, 0.75),
+                                                (0.85, 0.1, 0.5), (1.0, 0.1, 0.5)):
         now = of.scheduled(ppo, optimizer, done_share)
         assert now.entropy_coef == pytest.approx(ppo.entropy_coef * entropy_share)
         assert optimizer.param_groups[0]["lr"] == pytest.approx(ppo.learning_rate * lr_share)
     assert of.scheduled(of.PPOSettings(), optimizer, 0.7).entropy_coef == of.PPOSettings().entropy_coef * (
         1 + (of.PPOSettings().entropy_end_ratio - 1) * 0.7)   # the defaults are a schedule too
+    ppo = dataclasses.replace(ppo, schedule_start_share=0.0, schedule_share=1.0)   # linear over the whole run
     half = dataclasses.replace(ppo, schedule_share=0.5)      # the schedule ends half-way and holds
     for done_share, entropy_share in ((0.0, 1.0), (0.25, 0.55), (0.5, 0.1), (0.75, 0.1), (1.0, 0.1)):
         assert of.scheduled(half, optimizer, done_share).entropy_coef == pytest.approx(ppo.entropy_coef * entropy_share)
