@@ -1605,11 +1605,25 @@ def test_the_stops_study_records_each_stop_with_the_estimated_and_the_true_share
     rows = stops.stop_chunk("gnbv", "ap", "cubes", [0, 1, 2, 3], None)
     assert [row["seed"] for row in rows] == [0, 1, 2, 3] and all(0 <= row["true_share"] <= 1 for row in rows)
     assert any(row["claimed_found"] for row in rows)
-    for row in rows:   # a claim "found" is the estimate above 20 %, and succeeds exactly when the truth is
-        assert row["claimed_found"] == (row["stopped"] and row["perceived_share"] > 0.2)
+    bar = of.TASKS["ap"].claim_margin * of.TASKS["ap"].seen_threshold
+    for row in rows:   # a claim "found" has the estimate above the bar, and succeeds exactly when the truth is
+        assert not row["claimed_found"] or (row["stopped"] and row["perceived_share"] > bar)
         assert not row["claimed_found"] or row["success"] == (row["true_share"] > 0.2)
     table = stops.stops_markdown({("gnbv", "ap", "cubes"): rows}, 0.2).splitlines()
     assert len(table) == 3 and table[-1].startswith("| gnbv | ap / cubes | ")
+
+
+def test_a_stop_rule_scored_on_a_trace_gives_the_episodes_that_rule_plays():
+    cfg, seeds = of.TASKS["ap"], [0, 1, 2, 3, 4, 5]
+    played = stops.stop_chunk("gnbv", "ap", "cubes", seeds, None)
+    traces = stops.trace_chunk("gnbv", "ap", "cubes", seeds, None)
+    scored = [stops.score_rule(t, cfg.claim_margin, cfg.confirm_views, cfg.seen_threshold) for t in traces]
+    assert [(s[2], s[3]) for s in scored] == [(r["success"], r["steps"]) for r in played]
+    assert [s[0] for s in scored] == [r["claimed_found"] for r in played] and any(s[0] for s in scored)
+    assert [s[3] for s in (stops.score_rule(t, 1.0, 1, 0.2) for t in traces)] != [s[3] for s in scored]
+    assert stops.rules_arg("1x1, 1.25x2") == [(1.0, 1), (1.25, 2)]
+    with pytest.raises(of.UsageError, match="is not MxV"):
+        stops.rules_arg("0.9x2")
 
 
 def test_a_short_arm_soak_gets_only_finite_goals_within_a_step_and_no_traceback():
