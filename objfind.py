@@ -474,8 +474,9 @@ class TSDFVolume:
         # Detections from a separate RGB camera are registered to about one of its pixels, so a view that misses
         # a cell is expected: the cell forgets at half the threshold, after repeated misses (a push, a carve).
         forget_at = self.detection_threshold / 2 if rgb_outline is not None else self.detection_threshold
-        faded = np.zeros(self.detections.size, bool)
-        faded[flat[det_new <= forget_at]] = True
+        if any(len(cells) for cells, _ in self.target_area):   # most views: no target seen yet, nothing to forget
+            faded = np.zeros(self.detections.size, bool)
+            faded[flat[det_new <= forget_at]] = True
         for g, (offset, (cells, area)) in enumerate(zip(self.area_offsets, self.target_area)):
             if len(cells):
                 centres = (np.stack(np.unravel_index(cells, self.area_shape), 1) + 0.5) * self.area_cell_m - offset
