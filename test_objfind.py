@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import objfind as of
-from tools import bench, sensors, soak, stops
+from tools import bench, moves, sensors, soak, stops
 from tools import replay as replay_tool
 
 torch = of.torch   # imported by objfind after it limits BLAS threads
@@ -3014,11 +3014,26 @@ def test_a_ray_address_nobody_answers_is_refused_within_thirty_seconds(tmp_path)
 
 # --- tools/: each a script that imports objfind ------------------------------------------------------
 
-@pytest.mark.parametrize("tool", ["replay.py", "sensors.py", "bench.py", "soak.py", "stops.py"])
+@pytest.mark.parametrize("tool", ["replay.py", "sensors.py", "bench.py", "soak.py", "stops.py", "moves.py"])
 def test_each_tool_runs_as_a_script_with_help(tool):
     done = subprocess.run([sys.executable, str(HERE / "tools" / tool), "--help"], capture_output=True, text=True,
                           timeout=300, cwd="/")
     assert done.returncode == 0 and done.stdout.startswith(f"usage: tools/{tool}"), done.stderr[-500:]
+
+
+def test_moves_counts_a_greedy_move_at_the_bound_as_saturated_and_a_small_one_not():
+    model = of.ActorCritic(of.STATE_SIZE, of.PPOSettings())
+    with torch.no_grad():
+        model.actor[-1].bias[-1] = 10.0   # stop after one step
+    small = moves.greedy_moves(dict(model=model.state_dict(), settings=dataclasses.asdict(of.PPOSettings()),
+                                    obs_dim=of.STATE_SIZE), "ap", "cubes", range(2))
+    with torch.no_grad():
+        model.actor[-1].bias[:of.ACTION_MOVES] = torch.tensor([3.0, -3.0, 3.0, -3.0, 3.0])
+    full = moves.greedy_moves(dict(model=model.state_dict(), settings=dataclasses.asdict(of.PPOSettings()),
+                                   obs_dim=of.STATE_SIZE), "ap", "cubes", range(2))
+    assert small.shape == full.shape == (2, of.ACTION_MOVES)
+    assert (np.abs(small) < moves.SATURATED).all() and (np.abs(full) >= moves.SATURATED).all()
+    assert (np.sign(full) == [1, -1, 1, -1, 1]).all()
 
 
 @pytest.mark.parametrize("tool, args", [
