@@ -3023,14 +3023,13 @@ def test_each_tool_runs_as_a_script_with_help(tool):
 
 def test_moves_counts_a_greedy_move_at_the_bound_as_saturated_and_a_small_one_not():
     model = of.ActorCritic(of.STATE_SIZE, of.PPOSettings())
+    policy = dict(model=model.state_dict(), settings=dataclasses.asdict(of.PPOSettings()), obs_dim=of.STATE_SIZE)
     with torch.no_grad():
         model.actor[-1].bias[-1] = 10.0   # stop after one step
-    small = moves.greedy_moves(dict(model=model.state_dict(), settings=dataclasses.asdict(of.PPOSettings()),
-                                    obs_dim=of.STATE_SIZE), "ap", "cubes", range(2))
-    with torch.no_grad():
+    small = moves.greedy_moves(policy, "ap", "cubes", range(2))
+    with torch.no_grad():   # the state dict holds the model's own tensors: the policy follows
         model.actor[-1].bias[:of.ACTION_MOVES] = torch.tensor([3.0, -3.0, 3.0, -3.0, 3.0])
-    full = moves.greedy_moves(dict(model=model.state_dict(), settings=dataclasses.asdict(of.PPOSettings()),
-                                   obs_dim=of.STATE_SIZE), "ap", "cubes", range(2))
+    full = moves.greedy_moves(policy, "ap", "cubes", range(2))
     assert small.shape == full.shape == (2, of.ACTION_MOVES)
     assert (np.abs(small) < moves.SATURATED).all() and (np.abs(full) >= moves.SATURATED).all()
     assert (np.sign(full) == [1, -1, 1, -1, 1]).all()

@@ -36,7 +36,7 @@ def greedy_moves(policy: dict, task: str, scene: str, seeds: range) -> np.ndarra
 
 def cmd_moves(args) -> int:
     task = args.task or default_task(args.agent)
-    policy = learned_policy(args.agent, task, Path(args.weights) if args.weights else None)
+    policy = learned_policy(args.agent, task, args.weights)
     moves = np.abs(greedy_moves(policy, task, args.scene, range(args.seed, args.seed + args.episodes)))
     std = np.exp(policy["model"]["log_std"].numpy())
     print(f"{len(moves)} moves in {args.episodes} episodes of {task} / {args.scene}")
