@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import objfind as of
-from tools import bench, sensors, soak, stops
+from tools import bench, moves, sensors, soak, stops
 from tools import replay as replay_tool
 
 torch = of.torch   # imported by objfind after it limits BLAS threads
@@ -867,12 +867,13 @@ def test_eval_csv_round_trips_for_resumed_tables(tmp_path):
     with pytest.raises(of.UsageError, match="holds 1 episodes from seed 3, not 1 from seed 4"):
         of.stored_cell(path, [4], origin)               # another experiment's cell: refused, never replaced
     ablation = of.cell_origin("gnbv", "ap", "cubes", None, dict(target_size_known=False))
-    with pytest.raises(of.UsageError, match="made by gnbv on ap/cubes .weights none, target size known, world "
-                                            ".., not gnbv on ap/cubes .weights none, target size unknown"):
+    with pytest.raises(of.UsageError, match="made by gnbv on ap/cubes .weights none, target size known, world .* "
+                                            "settings [0-9a-f]{8}., not gnbv on ap/cubes .weights none, target "
+                                            "size unknown"):
         of.stored_cell(path, [3], ablation)
     older_world = dict(origin, world=str(of.WORLD_REVISION - 1))    # made before a change that alters episodes
     of.write_csv([dict(rows[0], **older_world)], path)
-    with pytest.raises(of.UsageError, match=f"world {of.WORLD_REVISION - 1}., not .* world {of.WORLD_REVISION}"):
+    with pytest.raises(of.UsageError, match=f"world {of.WORLD_REVISION - 1}., not .* world {of.WORLD_REVISION} with"):
         of.stored_cell(path, [3], origin)
 
 
@@ -880,8 +881,10 @@ def test_a_sensor_point_made_with_other_settings_is_refused_whatever_its_file_is
     rig = of.cell_origin("i3de", "ip", "cubes", None, of.RIG_SENSING)
     assert re.fullmatch(rf"{of.WORLD_REVISION}\+[0-9a-f]{{8}}", rig["world"])
     assert of.cell_origin("i3de", "ip", "cubes", None, dict(of.RIG_SENSING)) == rig
-    for plain in (None, {}, dict(target_size_known=False), dict(tof_noise_ratio=of.TASKS["ip"].tof_noise_ratio)):
-        assert of.cell_origin("i3de", "ip", "cubes", None, plain)["world"] == str(of.WORLD_REVISION)   # Table II's
+    table_two = of.cell_origin("i3de", "ip", "cubes", None, None)["world"]
+    assert re.fullmatch(rf"{of.WORLD_REVISION}\+[0-9a-f]{{8}}", table_two) and table_two != rig["world"]
+    for plain in ({}, dict(target_size_known=False), dict(tof_noise_ratio=of.TASKS["ip"].tof_noise_ratio)):
+        assert of.cell_origin("i3de", "ip", "cubes", None, plain)["world"] == table_two
     path = tmp_path / "i3de-ip-rig-camera-1.csv"
     of.write_csv(fake_rows(0, 2, "i3de", "ip", overrides=of.RIG_SENSING), path)
     assert len(of.stored_cell(path, [0, 1], rig)) == 2
@@ -892,6 +895,13 @@ def test_a_sensor_point_made_with_other_settings_is_refused_whatever_its_file_is
     of.write_csv([dict(row, world="7+zz") for row in fake_rows(0, 1)], path)
     with pytest.raises(of.UsageError, match="line 2: '7.zz' is not a world"):
         of.read_episodes(path)
+
+
+def test_a_settings_default_edited_in_the_file_changes_the_world_stamp(monkeypatch):
+    before = of.cell_origin("gnbv", "ap", "cubes", None, None)["world"]
+    monkeypatch.setitem(of.TASKS, "ap", dataclasses.replace(of.TASKS["ap"], trunc_m=0.05))   # as an edited default
+    edited = of.cell_origin("gnbv", "ap", "cubes", None, None)["world"]
+    assert edited.split("+")[0] == before.split("+")[0] == str(of.WORLD_REVISION) and edited != before
 
 
 def test_table_two_pools_the_no_target_scenes_of_each_agent():
@@ -945,11 +955,11 @@ def test_perceived_share_grows_with_the_faces_seen_and_tracks_the_truth(ap_env):
     assert all(0.6 * t < p < t + 0.03 for p, t in shares), shares     # in step, on the safe side
 
 
-@pytest.mark.parametrize("height_m, low", [(0.08, 1 / 6 - 0.015), (0.3, 0.12)])
+@pytest.mark.parametrize("height_m, low", [(0.08, 1 / 6 - 0.025), (0.3, 0.1)])
 def test_a_view_from_straight_above_perceives_one_face_of_six(ap_env, height_m, low):
-    # The top face is exactly a sixth of a cube's surface. The seen area measures it, less half of
-    # the outline pixels (more of them far away); a count of marked voxels read 0.19-0.21 here and
-    # stopped the searchers early.
+    # The top face is exactly a sixth of a cube's surface. The seen area measures it, less the outline
+    # pixels, whose one-sided difference to the floor is a jump (more of them far away); a count of
+    # marked voxels read 0.19-0.21 here and stopped the searchers early.
     seed_with(ap_env, target_present=True)
     pos = np.array(ap_env.sim.getBasePositionAndOrientation(ap_env.objects[0].body)[0])
     ap_env.searcher.volume.reset()
@@ -957,6 +967,41 @@ def test_a_view_from_straight_above_perceives_one_face_of_six(ap_env, height_m, 
     ap_env._teleport(np.r_[pos[:2], camera_z - ap_env.cfg.camera_offset_m], of.gripper_rotation(0.0, 0.0))
     ap_env._observe()
     assert low < ap_env.searcher.perceived_target_share() <= 1 / 6 + 0.005
+
+
+@pytest.mark.parametrize("agent, task, scene, seed", [("ges", "ip", "cubes", 87), ("ges", "ip", "cubes", 185),
+                                                       ("gnbv", "ap-real", "cubes-and-cuboids", 149),
+                                                       ("gnbv", "ap-real", "cubes-and-cuboids", 20)])
+def test_the_searchers_do_not_claim_where_world_7_claimed_with_20_percent_or_less_seen(agent, task, scene, seed):
+    # World 7 claimed "found" in these scenes at steps 1-3 with 14-19 % of the target truly seen
+    # (results/stops/ of that world): the estimate passed 20 % on its first views.
+    env = of.ObjectFindingEnv(task, scene)
+    env.reset(seed=seed)
+    searcher = of.make_agent(agent, env.cfg, seed)
+    searcher.reset(env.searcher, env.gripper_pose())
+    for _ in range(12):
+        action = searcher.act(env.searcher, env.gripper_pose())
+        _, _, done, _, info = env.step(action)
+        if action[of.ACTION_MOVES] > 0:
+            assert info["target_seen_fraction"] > 0.2, info
+        if done:
+            break
+    env.close()
+
+
+def test_a_flat_target_on_the_floor_is_perceived_as_seen():
+    # A sticker on the floor, seen from straight above: its points back-project onto the floor plane, and
+    # float32 depth puts them a hair below it, outside the volume, unless they are kept on the floor.
+    searcher = of.Searcher(of.TASKS["ap"])
+    searcher.reset(0.04 * 0.04)                            # told its area: one 4 cm square face
+    camera = searcher.rig.depth
+    T_world_depth = np.eye(4)
+    T_world_depth[:3, :3], T_world_depth[2, 3] = of.rotation(np.pi, "x"), 0.3   # looking straight down
+    depth_m = np.full((camera.height, camera.width), 0.3, np.float32)
+    floor = of.back_project(depth_m.astype(np.float64), camera.K)
+    sticker = (np.abs(floor[..., 0]) < 0.02) & (np.abs(floor[..., 1]) < 0.02)
+    searcher.observe(depth_m, T_world_depth, detections=sticker.astype(np.float32))
+    assert 0.7 < searcher.perceived_target_share() <= 1.0
 
 
 def test_perceived_share_is_conservative_over_random_views(ap_env):
@@ -989,22 +1034,45 @@ def test_ground_truth_of_a_model_uses_only_its_surface_seen_from_outside():
         shares[name] = len(points) / 2000
         assert np.allclose(np.linalg.norm(normals, axis=1), 1.0) and area > 0
     assert shares["teddy_vhacd.urdf"] < 0.9          # its convex pieces overlap: buried faces dropped
-    assert shares["jenga/jenga.urdf"] > 0.99 and shares["objects/mug.urdf"] > 0.95   # a mug's inside shows
+    assert shares["jenga/jenga.urdf"] > 0.99 and shares["objects/mug.urdf"] > 0.95   # what is left of its inside
 
 
-def test_a_mug_shows_its_inside():
-    # The inner wall of a mug is seen from above, facing its axis: the exterior normals are turned
-    # towards the camera that saw them (pointing them away from the centroid would hide that wall).
+def test_the_ground_truth_is_the_surface_the_camera_renders():
+    # The camera renders a decimated mesh (a mug's inner wall mostly gone): the truth's points are drawn on
+    # that mesh, its area is that mesh's, and each normal points to the side the squarest view saw.
     import os
     path = os.path.join(of.pybullet_data.getDataPath(), "objects/mug.urdf")
-    vertices, faces = of.urdf_mesh(path)
-    points, normals, _ = of.exterior_surface(path, 1.0, of.TASKS["ap"].seen_min_cos, candidates=2000)
-    to_axis = points.mean(0)[:2] - points[:, :2]
-    facing_axis = np.sum(normals[:, :2] * to_axis, axis=1) > 0.5 * np.linalg.norm(to_axis, axis=1)
-    assert facing_axis.mean() > 0.1
-    old_points, old_normals = of.sample_surface(vertices, faces, 2000, np.random.default_rng(0))
-    old_to_axis = old_points.mean(0)[:2] - old_points[:, :2]
-    assert np.mean(np.sum(old_normals[:, :2] * old_to_axis, axis=1) > 0.5 * np.linalg.norm(old_to_axis, axis=1)) < 0.02
+    model = of.mesh_model(path, 0.5)
+    points, normals, area = of.exterior_surface(path, 0.5, of.TASKS["ap"].seen_min_cos, candidates=2000)
+    rendered, _ = of.sample_surface(model.render_vertices, model.render_faces, 2000, np.random.default_rng(0))
+    rows = {tuple(p) for p in np.round(rendered, 12)}
+    assert all(tuple(p) in rows for p in np.round(points, 12))
+    assert area <= of.mesh_area(model.render_vertices, model.render_faces) + 1e-12
+    assert area < 0.75 * of.mesh_area(model.vertices, model.faces)
+
+
+def test_a_box_models_ground_truth_normals_point_out():
+    # Grazing views pass the depth test from behind a face: a normal turned to the first view that saw its
+    # point faced into a jenga block for 13 % of them; turned to the squarest, every one points out.
+    import os
+    path = os.path.join(of.pybullet_data.getDataPath(), "jenga/jenga.urdf")
+    points, normals, _ = of.exterior_surface(path, 0.5, of.TASKS["ap"].seen_min_cos, candidates=2000)
+    centre = of.mesh_model(path, 0.5).render_vertices.mean(0)
+    assert np.mean(np.sum(normals * (points - centre), axis=1) > 0) > 0.99
+
+
+def test_random_shapes_leave_out_exactly_the_slivers_thinner_than_the_minimum_width():
+    import os
+    data, directions = of.pybullet_data.getDataPath(), of.fibonacci_directions(500)
+    thin = set()
+    for i in range(1000):
+        if i == 168:    # its OBJ holds only NaN vertices
+            continue
+        hull = of.mesh_model(os.path.join(data, "random_urdfs", f"{i:03d}", f"{i:03d}.urdf"),
+                             of.RANDOM_SHAPE_SCALE).hull @ directions.T
+        if (hull.max(0) - hull.min(0)).min() < of.MIN_SHAPE_WIDTH_M:
+            thin.add(i)
+    assert thin == set(of.THIN_SHAPES) and set(of.RANDOM_SHAPES) == set(range(1000)) - thin - {168}
 
 
 # --- PPO ---------------------------------------------------------------------------------------------
@@ -1537,11 +1605,25 @@ def test_the_stops_study_records_each_stop_with_the_estimated_and_the_true_share
     rows = stops.stop_chunk("gnbv", "ap", "cubes", [0, 1, 2, 3], None)
     assert [row["seed"] for row in rows] == [0, 1, 2, 3] and all(0 <= row["true_share"] <= 1 for row in rows)
     assert any(row["claimed_found"] for row in rows)
-    for row in rows:   # a claim "found" is the estimate above 20 %, and succeeds exactly when the truth is
-        assert row["claimed_found"] == (row["stopped"] and row["perceived_share"] > 0.2)
+    bar = of.TASKS["ap"].claim_margin * of.TASKS["ap"].seen_threshold
+    for row in rows:   # a claim "found" has the estimate above the bar, and succeeds exactly when the truth is
+        assert not row["claimed_found"] or (row["stopped"] and row["perceived_share"] > bar)
         assert not row["claimed_found"] or row["success"] == (row["true_share"] > 0.2)
     table = stops.stops_markdown({("gnbv", "ap", "cubes"): rows}, 0.2).splitlines()
     assert len(table) == 3 and table[-1].startswith("| gnbv | ap / cubes | ")
+
+
+def test_a_stop_rule_scored_on_a_trace_gives_the_episodes_that_rule_plays():
+    cfg, seeds = of.TASKS["ap"], [0, 1, 2, 3, 4, 5]
+    played = stops.stop_chunk("gnbv", "ap", "cubes", seeds, None)
+    traces = stops.trace_chunk("gnbv", "ap", "cubes", seeds, None)
+    scored = [stops.score_rule(t, cfg.claim_margin, cfg.confirm_views, cfg.seen_threshold) for t in traces]
+    assert [(s[2], s[3]) for s in scored] == [(r["success"], r["steps"]) for r in played]
+    assert [s[0] for s in scored] == [r["claimed_found"] for r in played] and any(s[0] for s in scored)
+    assert [s[3] for s in (stops.score_rule(t, 1.0, 1, 0.2) for t in traces)] != [s[3] for s in scored]
+    assert stops.rules_arg("1x1, 1.25x2") == [(1.0, 1), (1.25, 2)]
+    with pytest.raises(of.UsageError, match="is not MxV"):
+        stops.rules_arg("0.9x2")
 
 
 def test_a_short_arm_soak_gets_only_finite_goals_within_a_step_and_no_traceback():
@@ -2050,23 +2132,41 @@ def test_a_checkpoint_whose_tensors_do_not_fit_names_the_tensor(tmp_path):
         of.read_checkpoint(tmp_path / "cut.pt")
 
 
-def test_the_twenty_percent_rule_is_one_function_and_exactly_twenty_percent_is_not_observed(monkeypatch):
+def test_the_twenty_percent_rule_is_one_function_and_a_claim_needs_the_margin_in_views_in_a_row(monkeypatch):
     env = of.ObjectFindingEnv("ip", seed=3)
     env.reset()
-    calls = []
+    calls, share = [], [0.0]
     real = of.target_observed
-    monkeypatch.setattr(of, "target_observed", lambda share, threshold: calls.append(share) or real(share, threshold))
-    monkeypatch.setattr(of.Searcher, "perceived_target_share", lambda self: 0.2)   # exactly the threshold
+    monkeypatch.setattr(of, "target_observed", lambda s, threshold: calls.append((s, threshold)) or real(s, threshold))
+    monkeypatch.setattr(of.Searcher, "perceived_target_share", lambda self: share[0])
+    bar = env.cfg.claim_margin * env.cfg.seen_threshold
+    assert env.cfg.confirm_views == 2 and bar > env.cfg.seen_threshold
+    for s in (bar, bar, bar, bar + 1e-3, bar, bar + 1e-3):   # exactly at the bar, or above it once at a time
+        share[0] = s
+        env._observe()
+        assert calls[-1] == (s, bar) and not env.searcher.target_found()
     for name in ("scripted", "gnbv", "ges"):
         agent = of.make_agent(name, env.cfg, seed=0)
         agent.reset(env.searcher, env.gripper_pose())
-        calls.clear()
-        action = agent.act(env.searcher, env.gripper_pose())
-        assert calls == [0.2] and action[of.ACTION_MOVES] < 0, name    # asked the rule, and did not stop
+        assert agent.act(env.searcher, env.gripper_pose())[of.ACTION_MOVES] < 0, name    # does not stop
+    env._observe()                                           # above the bar in a second view in a row
+    assert env.searcher.target_found()
+    for name in ("scripted", "gnbv", "ges"):
+        agent = of.make_agent(name, env.cfg, seed=0)
+        agent.reset(env.searcher, env.gripper_pose())
+        assert agent.act(env.searcher, env.gripper_pose())[of.ACTION_MOVES] > 0, name
     env.target_seen[:] = np.arange(len(env.target_seen)) < 0.2 * len(env.target_seen)   # the truth: exactly 20 %
     calls.clear()
-    assert env._info()["target_observed"] is False and calls == [0.2]
+    assert env._info()["target_observed"] is False and calls == [(0.2, 0.2)]
     env.close()
+
+
+def body_frame_mesh(sim, body: int, urdf_path: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """The visual mesh of a loaded URDF body in pybullet's base frame, which is the inertial frame."""
+    v, f = of.urdf_mesh(urdf_path)
+    _, _, _, inertial_pos, inertial_orn, *_ = sim.getDynamicsInfo(body, -1)
+    R = np.array(of.pb.getMatrixFromQuaternion(inertial_orn)).reshape(3, 3)
+    return (v * scale - np.array(inertial_pos)) @ R, f
 
 
 MODEL_PATHS = [(str(Path(of.pybullet_data.getDataPath()) / name), scale) for name, scale in of.OBJECT_MODELS] + \
@@ -2079,7 +2179,7 @@ def test_a_cheaper_mesh_model_keeps_the_ground_truths_mesh_in_loadurdfs_frame(pa
     model = of.mesh_model(path, scale)
     sim = of.PhysicsClient()
     try:
-        vertices, faces = of.body_frame_mesh(sim, sim.loadURDF(path, globalScaling=scale), path, scale)
+        vertices, faces = body_frame_mesh(sim, sim.loadURDF(path, globalScaling=scale), path, scale)
     finally:
         sim.disconnect()
     assert np.allclose(model.vertices, vertices, atol=1e-12) and np.array_equal(model.faces, faces)
@@ -2091,7 +2191,7 @@ def test_a_cheaper_mesh_model_keeps_the_ground_truths_mesh_in_loadurdfs_frame(pa
         assert np.allclose(rest @ rest.T, np.eye(3)) and np.isclose(np.linalg.det(rest), 1.0)
 
 
-def test_the_targets_ground_truth_comes_from_the_full_mesh(monkeypatch):
+def test_the_targets_ground_truth_comes_from_its_exterior_surface(monkeypatch):
     env = of.ObjectFindingEnv("ap", "object-models")
     for seed in range(20):
         env.reset(seed=seed)
@@ -2796,7 +2896,8 @@ def test_a_training_world_is_kept_in_the_checkpoint_and_by_a_resumed_run(tmp_pat
 def test_the_median_filter_keeps_a_noisy_cameras_perceived_share_from_swelling():
     """1 % depth noise on the real preset's camera roughens the target's faces: without the filter the
     perceived share runs well above the ideal sensor's; with area_median_px=3 it stays near it
-    (measured over these views: 1.8x and 1.0x the ideal's)."""
+    (measured over these views: 1.26x and 0.86x the ideal's; a pixel too oblique by either one-sided
+    difference counts nothing, which drops the noisiest already)."""
     def share_ratio(**overrides):
         env = of.ObjectFindingEnv("ap-real", "cubes-and-cuboids", tof_missing_share=0.0, tof_edge_jump_m=0.0,
                                   hand_eye_error_m=0.0, hand_eye_error_rad=0.0, **overrides)
@@ -2809,7 +2910,7 @@ def test_the_median_filter_keeps_a_noisy_cameras_perceived_share_from_swelling()
         env.close()
         return np.sum(perceived) / np.sum(truth)
     ideal = share_ratio(tof_noise_ratio=0.0, area_median_px=0)
-    assert share_ratio(area_median_px=0) > 1.4 * ideal
+    assert share_ratio(area_median_px=0) > 1.15 * ideal
     assert abs(share_ratio() / ideal - 1) < 0.2
 
 
@@ -2913,11 +3014,25 @@ def test_a_ray_address_nobody_answers_is_refused_within_thirty_seconds(tmp_path)
 
 # --- tools/: each a script that imports objfind ------------------------------------------------------
 
-@pytest.mark.parametrize("tool", ["replay.py", "sensors.py", "bench.py", "soak.py", "stops.py"])
+@pytest.mark.parametrize("tool", ["replay.py", "sensors.py", "bench.py", "soak.py", "stops.py", "moves.py"])
 def test_each_tool_runs_as_a_script_with_help(tool):
     done = subprocess.run([sys.executable, str(HERE / "tools" / tool), "--help"], capture_output=True, text=True,
                           timeout=300, cwd="/")
     assert done.returncode == 0 and done.stdout.startswith(f"usage: tools/{tool}"), done.stderr[-500:]
+
+
+def test_moves_counts_a_greedy_move_at_the_bound_as_saturated_and_a_small_one_not():
+    model = of.ActorCritic(of.STATE_SIZE, of.PPOSettings())
+    policy = dict(model=model.state_dict(), settings=dataclasses.asdict(of.PPOSettings()), obs_dim=of.STATE_SIZE)
+    with torch.no_grad():
+        model.actor[-1].bias[-1] = 10.0   # stop after one step
+    small = moves.greedy_moves(policy, "ap", "cubes", range(2))
+    with torch.no_grad():   # the state dict holds the model's own tensors: the policy follows
+        model.actor[-1].bias[:of.ACTION_MOVES] = torch.tensor([3.0, -3.0, 3.0, -3.0, 3.0])
+    full = moves.greedy_moves(policy, "ap", "cubes", range(2))
+    assert small.shape == full.shape == (2, of.ACTION_MOVES)
+    assert (np.abs(small) < moves.SATURATED).all() and (np.abs(full) >= moves.SATURATED).all()
+    assert (np.sign(full) == [1, -1, 1, -1, 1]).all()
 
 
 @pytest.mark.parametrize("tool, args", [
