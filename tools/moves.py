@@ -10,11 +10,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from objfind import (ACTION_MOVES, LEARNED, TASKS, ArgumentParser, ObjectFindingEnv, PPOAgent,  # noqa: E402
-                     SCENES, default_task, episodes_arg, learned_policy, run_cli, run_episode, seed_arg)
+from objfind import (ACTION_MOVES, ACTION_NAMES, LEARNED, TASKS, ArgumentParser, ObjectFindingEnv,  # noqa: E402
+                     PPOAgent, SCENES, default_task, episodes_arg, learned_policy, run_cli, run_episode, seed_arg)
 
 SATURATED = 0.99   # |mean| at or above this share of the bound counts as a full step
-MOVE_NAMES = ("dx", "dy", "dz", "roll", "yaw")
 
 
 def greedy_moves(policy: dict, task: str, scene: str, seeds: range) -> np.ndarray:
@@ -31,6 +30,7 @@ def greedy_moves(policy: dict, task: str, scene: str, seeds: range) -> np.ndarra
     env = ObjectFindingEnv(task, scene)
     for seed in seeds:
         run_episode(env, agent, seed)
+    env.close()
     return np.array(moves)
 
 
@@ -41,7 +41,7 @@ def cmd_moves(args) -> int:
     std = np.exp(policy["model"]["log_std"].numpy())
     print(f"{len(moves)} moves in {args.episodes} episodes of {task} / {args.scene}")
     print("| move | saturated | mean abs | std |\n|---|---|---|---|")
-    for i, name in enumerate(MOVE_NAMES):
+    for i, name in enumerate(ACTION_NAMES[:ACTION_MOVES]):
         print(f"| {name} | {100 * (moves[:, i] >= SATURATED).mean():.0f} % | {moves[:, i].mean():.2f} | {std[i]:.2f} |")
     return 0
 

@@ -20,7 +20,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from objfind import (ACTION_MOVES, EVAL_CHUNK, LEARNED, PAPER_TABLE_II, TASKS, ArgumentParser,  # noqa: E402
                      ObjectFindingEnv, UsageError, episodes_arg, learned_policy, make_agent, replace_atomically,
-                     run_cli, run_jobs, seed_arg, workers_arg, write_csv, writable_folder)
+                     run_cli, run_jobs, seed_arg, target_observed, workers_arg, write_csv, writable_folder)
 
 STOP_FIELDS = ("seed", "target_present", "stopped", "claimed_found", "steps", "perceived_share", "true_share",
                "success")
@@ -73,10 +73,10 @@ def trace_chunk(agent_name: str, task: str, scene: str, seeds: list, policy: dic
 def score_rule(trace: dict, margin: float, views: int, threshold: float) -> tuple:
     """(claimed, claimed with <= threshold truly seen, success, steps) of a traced episode under a rule: it
     claims at the first decision after `views` views in a row with the estimate above margin x threshold."""
-    above = np.array(trace["perceived"]) > margin * threshold
+    above = target_observed(np.array(trace["perceived"]), margin * threshold)
     for k in range(views - 1, len(above)):
         if above[k - views + 1:k + 1].all():
-            seen = trace["truth"][k] > threshold
+            seen = target_observed(trace["truth"][k], threshold)
             return True, trace["target_present"] and not seen, seen or not trace["target_present"], k + 1
     return False, False, trace["success"], trace["steps"]
 
