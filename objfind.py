@@ -262,10 +262,11 @@ class PPOSettings:
     adam_eps: float = 1e-5             # Adam's epsilon, as in OpenAI Baselines' PPO2
     obs_clip: float = 5.0              # normalised observations are clipped to +- this many std
     checkpoint_every: int = 5          # updates between checkpoints
-    entropy_end_ratio: float = 1.0     # the entropy bonus and the learning rate go linearly, from
-    learning_rate_end_ratio: float = 1.0   # schedule_start_share to schedule_share of the run's --steps, to these
-    schedule_start_share: float = 0.0  # shares of their values, then stay there (1, 1: constant; `scheduled`;
-    schedule_share: float = 1.0        # train's TRAIN_RECIPES)
+    entropy_end_ratio: float = 1.0     # the entropy bonus, the learning rate and the discount go linearly,
+    learning_rate_end_ratio: float = 1.0   # from schedule_start_share to schedule_share of the run's --steps, to
+    gamma_end_ratio: float = 1.0       # these shares of their values, then stay there (1: constant; `scheduled`;
+    schedule_start_share: float = 0.0  # train's TRAIN_RECIPES)
+    schedule_share: float = 1.0
 
 
 # ================================================================================================
@@ -2142,13 +2143,15 @@ def derived_seed(*key: int) -> int:
 
 
 def scheduled(ppo: PPOSettings, optimizer, done_share: float) -> PPOSettings:
-    """The settings of an update `done_share` of the way through a run: the entropy bonus and Adam's learning
-    rate held until schedule_start_share, then moved linearly to their *_end_ratio shares, reached at schedule_share."""
+    """The settings of an update `done_share` of the way through a run: the entropy bonus, Adam's learning rate
+    and the discount held until schedule_start_share, then moved linearly to their *_end_ratio shares, reached at
+    schedule_share."""
     start, end = ppo.schedule_start_share, ppo.schedule_share
     done_share = min(1.0, max(0.0, done_share - start) / (end - start))
     for group in optimizer.param_groups:
         group["lr"] = ppo.learning_rate * (1 + (ppo.learning_rate_end_ratio - 1) * done_share)
-    return dataclasses.replace(ppo, entropy_coef=ppo.entropy_coef * (1 + (ppo.entropy_end_ratio - 1) * done_share))
+    return dataclasses.replace(ppo, entropy_coef=ppo.entropy_coef * (1 + (ppo.entropy_end_ratio - 1) * done_share),
+                               gamma=ppo.gamma * (1 + (ppo.gamma_end_ratio - 1) * done_share))
 
 
 def ppo_iteration(model: ActorCritic, optimizer, ppo: PPOSettings, collect, seed: int, update: int) -> tuple:
@@ -2245,7 +2248,8 @@ PPO_RANGES = {
     "learning_rate": "(0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "reward_scale": "(0, inf)",
     "init_terminate_prob": "[1e-6, 0.999999]", "init_log_std": "[-10, 2]", "adam_eps": "(0, inf)",
     "obs_clip": "(0, inf)", "checkpoint_every": "[1, inf)", "entropy_end_ratio": "[0, 10]",
-    "learning_rate_end_ratio": "[0, 10]", "schedule_start_share": "[0, 1)", "schedule_share": "(0, 1]"}
+    "learning_rate_end_ratio": "[0, 10]", "gamma_end_ratio": "(0, 1]", "schedule_start_share": "[0, 1)",
+    "schedule_share": "(0, 1]"}
 
 
 def in_interval(value: float, interval: str) -> bool:
