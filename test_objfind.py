@@ -1813,18 +1813,21 @@ def test_a_run_keeps_its_schedule_and_the_schedule_moves_linearly_from_start_to_
     run = tmp_path / "run"
     small = ["--set", "batch_steps=32", "--set", "hidden=8", "--set", "minibatch=16", "--set", "epochs=1"]
     assert of.main(["train", "--task", "ap", "--out", str(run), "--steps", "32", "--streams", "1", "--workers", "1",
-                    "--set", "entropy_end_ratio=0.1", "--set", "learning_rate_end_ratio=0.5", *small]) == 0
+                    "--set", "entropy_end_ratio=0.1", "--set", "learning_rate_end_ratio=0.5",
+                    "--set", "gamma_end_ratio=0.98", *small]) == 0
     checkpoint = of.read_checkpoint(run / "checkpoint.pt", run=True)
     assert checkpoint["schedule_steps"] == 32 and checkpoint["update"] == 1
     ppo = of.ppo_settings(checkpoint["settings"])
-    assert (ppo.entropy_end_ratio, ppo.learning_rate_end_ratio) == (0.1, 0.5)
+    assert (ppo.entropy_end_ratio, ppo.learning_rate_end_ratio, ppo.gamma_end_ratio) == (0.1, 0.5, 0.98)
     assert (ppo.schedule_start_share, ppo.schedule_share) == (0.8, 0.85)      # the recipe's, kept
     optimizer = torch.optim.Adam(of.ActorCritic(of.STATE_SIZE, ppo).parameters(), lr=ppo.learning_rate)
-    for done_share, entropy_share, lr_share in ((0.0, 1.0, 1.0), (0.8, 1.0, 1.0), (0.825, 0.55, 0.75),
-                                                (0.85, 0.1, 0.5), (1.0, 0.1, 0.5)):
+    for done_share, entropy_share, lr_share, gamma_share in ((0.0, 1.0, 1.0, 1.0), (0.8, 1.0, 1.0, 1.0),
+                                                             (0.825, 0.55, 0.75, 0.99), (0.85, 0.1, 0.5, 0.98),
+                                                             (1.0, 0.1, 0.5, 0.98)):
         now = of.scheduled(ppo, optimizer, done_share)
         assert now.entropy_coef == pytest.approx(ppo.entropy_coef * entropy_share)
         assert optimizer.param_groups[0]["lr"] == pytest.approx(ppo.learning_rate * lr_share)
+        assert now.gamma == pytest.approx(ppo.gamma * gamma_share)
     assert of.scheduled(of.PPOSettings(), optimizer, 0.7).entropy_coef == of.PPOSettings().entropy_coef * (
         1 + (of.PPOSettings().entropy_end_ratio - 1) * 0.7)   # the defaults are a schedule too
     ppo = dataclasses.replace(ppo, schedule_start_share=0.0, schedule_share=1.0)   # linear over the whole run
