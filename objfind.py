@@ -2148,10 +2148,11 @@ def scheduled(ppo: PPOSettings, optimizer, done_share: float) -> PPOSettings:
     schedule_share."""
     start, end = ppo.schedule_start_share, ppo.schedule_share
     done_share = min(1.0, max(0.0, done_share - start) / (end - start))
+    ramp = lambda value, end_ratio: value * (1 + (end_ratio - 1) * done_share)   # noqa: E731
     for group in optimizer.param_groups:
-        group["lr"] = ppo.learning_rate * (1 + (ppo.learning_rate_end_ratio - 1) * done_share)
-    return dataclasses.replace(ppo, entropy_coef=ppo.entropy_coef * (1 + (ppo.entropy_end_ratio - 1) * done_share),
-                               gamma=ppo.gamma * (1 + (ppo.gamma_end_ratio - 1) * done_share))
+        group["lr"] = ramp(ppo.learning_rate, ppo.learning_rate_end_ratio)
+    return dataclasses.replace(ppo, entropy_coef=ramp(ppo.entropy_coef, ppo.entropy_end_ratio),
+                               gamma=ramp(ppo.gamma, ppo.gamma_end_ratio))
 
 
 def ppo_iteration(model: ActorCritic, optimizer, ppo: PPOSettings, collect, seed: int, update: int) -> tuple:
