@@ -1,8 +1,10 @@
-"""The stop rules on the two real cells alone: GNBV ap-real and GES ip-real traced with the claim off on seeds 0-199,
-with an objfind.py copy (ROOT: a checkout with a candidate patch applied) and setting overrides, and each rule scored
-on the traces as tools/stops.py --rules does. Writes OUT/traces.json and OUT/rules.md.
+"""The stop rules on the two real cells alone: GNBV ap-real and GES ip-real traced with the claim off on seeds
+0-199, with an objfind.py copy (ROOT: a checkout with a candidate patch applied) and setting overrides, and each rule
+scored on the traces as tools/stops.py --rules does. Writes OUT/traces.json and OUT/rules.md.
 
-    python results/stops/candidate-judge/realrules.py ROOT OUT ['{"setting": value}']   (NOFORGET=1: never forget)
+    python results/stops/candidate-judge/realrules.py ROOT OUT ['{"setting": value}']   (NOFORGET=1: never forget;
+    SEEDS=1000: seeds 0-999 instead; FIRST_SEED=100000: from that seed; RULES=1.5x2,...: those rules; an OUT
+    already traced is scored again)
 """
 import json
 import os
@@ -35,15 +37,20 @@ def chunk(agent_name, task, scene, seeds):
     return traces
 
 if __name__ == "__main__":
-    rules = stops.rules_arg("1x1,1.25x2,1.5x2,1.6x2,1.75x2,2x2,1.25x3,1.5x3")
-    cells = {}
-    for agent, task in (("gnbv", "ap-real"), ("ges", "ip-real")):
-        seeds = list(range(200))
-        jobs = [(agent, task, "cubes-and-cuboids", seeds[i:i + 20]) for i in range(0, 200, 20)]
-        cells[(agent, task, "cubes-and-cuboids")] = [r for part in of.run_jobs(chunk, jobs, 2) for r in part]
+    rules = stops.rules_arg(os.environ.get('RULES', "1x1,1.25x2,1.5x2,1.6x2,1.75x2,2x2,1.25x3,1.5x3"))
     out = sys.argv[2]
-    os.makedirs(out, exist_ok=True)
-    json.dump({f"{a}-{t}": v for (a, t, s), v in cells.items()}, open(out + "/traces.json", "w"))
+    if os.path.exists(out + "/traces.json"):   # traced already: score the rules again
+        cells = {(k.split("-", 1)[0], k.split("-", 1)[1], "cubes-and-cuboids"): v
+                 for k, v in json.load(open(out + "/traces.json")).items()}
+    else:
+        cells = {}
+        for agent, task in (("gnbv", "ap-real"), ("ges", "ip-real")):
+            first = int(os.environ.get('FIRST_SEED', 0))
+            seeds = list(range(first, first + int(os.environ.get('SEEDS', 200))))
+            jobs = [(agent, task, "cubes-and-cuboids", seeds[i:i + 20]) for i in range(0, len(seeds), 20)]
+            cells[(agent, task, "cubes-and-cuboids")] = [r for part in of.run_jobs(chunk, jobs, 2) for r in part]
+        os.makedirs(out, exist_ok=True)
+        json.dump({f"{a}-{t}": v for (a, t, s), v in cells.items()}, open(out + "/traces.json", "w"))
     md = stops.rules_markdown(cells, rules)
     open(out + "/rules.md", "w").write(md + "\n")
     print(md)
