@@ -1869,10 +1869,10 @@ class ObjectFindingEnv(gym.Env):
         view by its own calibration; returns the voxels it observed for the first time."""
         T_world_tool = self.gripper_pose()
         T_world_depth = T_world_tool @ self.true_rig.T_tool_depth
-        rgb, depth_m, rgb_depth_m = self._render(T_world_depth)
+        rgb, views = self._render(T_world_depth)
         detections = self._detect(rgb)
-        self._judge_seen(T_world_depth, depth_m, rgb_depth_m)
-        depth_m = time_of_flight(depth_m, self.np_random, self.sensing)
+        self._judge_seen(views)
+        depth_m = time_of_flight(views[0][2], self.np_random, self.sensing)
         T_believed = self.searcher.camera_pose(T_world_tool)
         self.view = WristView(rgb, depth_m, detections, T_believed)
         return self.searcher.observe(depth_m, T_believed, detections=detections)
@@ -1883,36 +1883,35 @@ class ObjectFindingEnv(gym.Env):
         draw_floor(rgb, depth_m, T_world_camera, camera, floor_half_m(self.cfg))
         return rgb, depth_m
 
-    def _render(self, T_world_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The RGB image, the depth camera's ideal depth and the RGB camera's, one render per camera, each with the
-        renderer's near plane (what lies closer than the sensor's minimum range must still hide what is behind it)."""
-        def render(T_world_camera, camera):
-            return self._render_world(T_world_camera, dataclasses.replace(camera, near_m=self.cfg.near_m))
-        rgb, depth_m = render(T_world_depth, self.true_rig.depth)
-        if self.true_rig.one_camera:
-            return rgb, depth_m, depth_m
-        rgb, rgb_depth_m = render(T_world_depth @ self.true_rig.T_depth_rgb, self.true_rig.rgb)
-        return rgb, depth_m, rgb_depth_m
+    def _render(self, T_world_depth: np.ndarray) -> tuple[np.ndarray, list]:
+        """The RGB image and each camera's view, (T_world_camera, camera, ideal depth), the depth camera's first: one
+        render per camera, with the renderer's near plane (what lies closer than the sensor's minimum range must
+        still hide what is behind it)."""
+        cameras = [(T_world_depth, self.true_rig.depth)]
+        if not self.true_rig.one_camera:
+            cameras.append((T_world_depth @ self.true_rig.T_depth_rgb, self.true_rig.rgb))
+        views = []
+        for T_world_camera, camera in cameras:   # the last camera rendered is the RGB camera
+            rgb, depth_m = self._render_world(T_world_camera, dataclasses.replace(camera, near_m=self.cfg.near_m))
+            views.append((T_world_camera, camera, depth_m))
+        return rgb, views
 
     def _detect(self, rgb: np.ndarray) -> np.ndarray:
         """The simulated detector of Sec. III-C: the colour detector's truth with the paper's noise."""
         return add_detector_noise(detect_target(rgb), self.np_random, self.cfg)
 
-    def _judge_seen(self, T_world_depth: np.ndarray, depth_m: np.ndarray, rgb_depth_m: np.ndarray) -> None:
-        """Ground truth: surface points the robot's sensors both see. Each camera: the point faces it, projects
-        into its image beyond its minimum range, and is unoccluded; on a rig, in the depth and the RGB camera."""
+    def _judge_seen(self, views: list) -> None:
+        """Ground truth: surface points every camera of the robot sees (`_render`'s views): each point faces the
+        camera, projects into its image beyond its minimum range, and is unoccluded."""
         if not self.target_present:
             return
         pos, orn = self.sim.getBasePositionAndOrientation(self.objects[0].body)
         R = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
         world, normals = self.target_points @ R.T + pos, self.target_normals @ R.T
-        seen = self._visible(world, normals, T_world_depth, self.true_rig.depth, depth_m)
-        if not self.true_rig.one_camera:
-            T_world_rgb = T_world_depth @ self.true_rig.T_depth_rgb
-            seen &= self._visible(world, normals, T_world_rgb, self.true_rig.rgb, rgb_depth_m)
-        self.target_seen |= seen
+        self.target_seen |= np.logical_and.reduce([self._visible(world, normals, T_world_camera, camera, depth_m)
+                                                   for T_world_camera, camera, depth_m in views])
 
-    def _visible(self, world, normals, T_world_camera: np.ndarray, camera: Camera, depth_m: np.ndarray):
+    def _visible(self, world, normals, T_world_camera: np.ndarray, camera: Camera, depth_m: np.ndarray) -> np.ndarray:
         """Which (n, 3) world points with their normals a camera sees in its ideal depth image."""
         to_camera = T_world_camera[:3, 3] - world
         facing = np.sum(normals * to_camera, axis=1) > self.cfg.seen_min_cos * vector_norm(to_camera)

@@ -2601,7 +2601,8 @@ def test_detections_of_an_offset_rgb_camera_land_on_the_target_in_the_depth_imag
         truth = of.detect_target(of.render_rgbd(env.sim, T_depth, rig.depth)[0]) > 0.5   # the depth camera's own view
         if truth.sum() > 40:
             break
-    rgb, depth, _ = env._render(T_depth)
+    rgb, views = env._render(T_depth)
+    depth = views[0][2]
     from_rgb = of.detect_target(rgb)
     mapped = rig.detections_in_depth_image(from_rgb, depth) > 0.5
     naive = from_rgb > 0.5                         # the RGB image taken as if it were the depth camera's
@@ -2763,7 +2764,7 @@ def test_the_drawn_floor_is_the_floor_tinyrenderer_drew():
     for seed in range(3):
         env.reset(seed=seed)
         T = env.gripper_pose() @ env.true_rig.T_tool_depth
-        rgb, depth, _ = env._render(T)
+        rgb, ((_, _, depth),) = env._render(T)
         floor = env.sim.createMultiBody(0, -1, env.sim.createVisualShape(
             of.pb.GEOM_BOX, halfExtents=[of.floor_half_m(cfg)] * 2 + [cfg.wall_thickness_m],
             visualFramePosition=[0, 0, -cfg.wall_thickness_m], rgbaColor=of.FLOOR_RGBA))
