@@ -2601,7 +2601,8 @@ def test_detections_of_an_offset_rgb_camera_land_on_the_target_in_the_depth_imag
         truth = of.detect_target(of.render_rgbd(env.sim, T_depth, rig.depth)[0]) > 0.5   # the depth camera's own view
         if truth.sum() > 40:
             break
-    rgb, depth = env._render(T_depth)
+    rgb, views = env._render(T_depth)
+    depth = views[0][2]
     from_rgb = of.detect_target(rgb)
     mapped = rig.detections_in_depth_image(from_rgb, depth) > 0.5
     naive = from_rgb > 0.5                         # the RGB image taken as if it were the depth camera's
@@ -2667,9 +2668,9 @@ def test_rig_camera_share_draws_the_rigs_camera_for_that_share_of_episodes():
 
 
 @pytest.mark.parametrize("task", ["ap", "ap-real"])   # 6 mm voxels; 3.3 mm, the area in cells of 6 mm
-def test_with_a_separate_rgb_camera_one_view_that_misses_a_cell_keeps_its_target_area(task):
-    def view(volume, detection, rgb_camera, times=1):
-        depth, detections = np.full((60, 80), 0.25, np.float32), np.zeros((60, 80), np.float32)
+def test_with_a_separate_rgb_camera_views_that_miss_a_cell_keep_its_target_area_until_one_sees_through(task):
+    def view(volume, detection, rgb_camera, times=1, depth_m=0.25):
+        depth, detections = np.full((60, 80), depth_m, np.float32), np.zeros((60, 80), np.float32)
         detections[20:40, 25:55] = detection     # the target in the middle of the view
         for _ in range(times):
             volume.integrate(depth, detections, K, looking_down(0.3),
@@ -2681,8 +2682,33 @@ def test_with_a_separate_rgb_camera_one_view_that_misses_a_cell_keeps_its_target
         view(volume, 0.0, rgb_camera)            # one view registered a few mm off
         kept = volume.seen_target_area_m2() / seen     # one RGB-D camera: forgotten at once
         assert kept > 0.95 if rgb_camera else kept == 0.0
-        view(volume, 0.0, rgb_camera, times=3)   # the target pushed away
+        view(volume, 0.0, rgb_camera, times=3)   # misses where the target lies: the rig keeps it
+        assert volume.seen_target_area_m2() / seen > 0.95 if rgb_camera else kept == 0.0
+        view(volume, 0.0, rgb_camera, times=3, depth_m=0.3)   # the target pushed away: seen through
         assert volume.seen_target_area_m2() == 0.0
+
+
+def test_on_the_rig_the_truth_counts_only_what_the_rgb_camera_sees_too(monkeypatch):
+    """A point the RGB camera never saw cannot have been detected: with its view blocked, nothing is seen."""
+    render = of.ObjectFindingEnv._render_world
+    def rgb_camera_blocked(self, T_world_camera, camera):
+        rgb, depth_m = render(self, T_world_camera, camera)
+        if camera.width != self.true_rig.depth.width:      # the RGB camera: something just before its lens
+            depth_m = np.full_like(depth_m, 0.02)
+        return rgb, depth_m
+    env = of.ObjectFindingEnv("ap-real", "cubes-and-cuboids")
+    seen = {}
+    for blocked in (False, True):
+        if blocked:
+            monkeypatch.setattr(of.ObjectFindingEnv, "_render_world", rgb_camera_blocked)
+        agent = of.make_agent("gnbv", env.cfg, 0, None)
+        _, info = env.reset(seed=0)
+        agent.reset(env.searcher, env.gripper_pose())
+        for _ in range(5):
+            _, _, done, _, info = env.step(agent.act(env.searcher, env.gripper_pose()))
+        seen[blocked] = info["target_seen_fraction"]
+    env.close()
+    assert seen[False] > 0.05 and seen[True] == 0.0, seen
 
 
 def test_gnbv_counts_the_same_volumes_at_any_voxel_size():
@@ -2738,7 +2764,7 @@ def test_the_drawn_floor_is_the_floor_tinyrenderer_drew():
     for seed in range(3):
         env.reset(seed=seed)
         T = env.gripper_pose() @ env.true_rig.T_tool_depth
-        rgb, depth = env._render(T)
+        rgb, ((_, _, depth),) = env._render(T)
         floor = env.sim.createMultiBody(0, -1, env.sim.createVisualShape(
             of.pb.GEOM_BOX, halfExtents=[of.floor_half_m(cfg)] * 2 + [cfg.wall_thickness_m],
             visualFramePosition=[0, 0, -cfg.wall_thickness_m], rgbaColor=of.FLOOR_RGBA))
