@@ -29,7 +29,7 @@ SENSOR_SWEEPS = (   # (name, axis title, a level in words, what it sets, four le
      lambda x: dict(hand_eye_error_m=x / 1000, hand_eye_error_rad=np.radians(x / 3)), (0, 3, 6, 12)),
 )
 SENSOR_AGENTS = (("a3de", "ap", None), ("i3de", "ip", None),   # (agent, task, weights/ file or the default)
-                 ("i3de", "ip", "i3de-rig.pt"))                 # I3DE trained with the rig's camera too
+                 ("i3de", "ip", "i3de-rig.pt"))                 # the rig's I3DE, fine-tuned on its replica
 SENSOR_BASELINES = (("gnbv", "ap"), ("ges", "ip"))               # with the ideal camera and the rig's
 
 
