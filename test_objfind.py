@@ -1265,7 +1265,7 @@ def test_the_shipped_weights_load_and_act(agent, task, name):
     checkpoint = of.read_checkpoint(path)
     assert checkpoint["obs_dim"] == 71 and checkpoint["env_steps"] > 0 and checkpoint["task"] == task
     policy = of.PPOAgent(of.learned_policy(agent, task, path))
-    env = of.ObjectFindingEnv(task, "cubes-and-cuboids" if "rig" in name else "cubes", seed=3)
+    env = of.ObjectFindingEnv(task, checkpoint["scene"], seed=3)     # where it was trained
     env.reset()
     action = policy.act(env.searcher, env.gripper_pose())
     assert action.shape == (6,) and np.all(np.abs(action) <= 1) and abs(action[5]) == 1.0
