@@ -1627,6 +1627,25 @@ def test_a_stop_rule_scored_on_a_trace_gives_the_episodes_that_rule_plays():
         stops.rules_arg("0.9x2")
 
 
+def test_the_estimates_study_scores_each_estimate_by_the_area_under_its_roc_curve():
+    seen = np.array([False, False, True, True])
+    assert stops.separation(np.array([0.1, 0.2, 0.3, 0.4]), seen) == 1.0
+    assert stops.separation(np.array([0.4, 0.3, 0.2, 0.1]), seen) == 0.0
+    assert stops.separation(np.array([0.1, 0.3, 0.2, 0.4]), seen) == 0.75   # 3 of 4 pairs in order
+    assert stops.separation(np.ones(4), seen) == 0.5                         # ties: a coin
+    trace = stops.trace_chunk("a3de", "ap", "cubes", [4], of.learned_policy("a3de", "ap"))[0]
+    assert len(trace["detection_sum"]) == len(trace["perceived"]) == trace["steps"]
+    assert max(trace["detection_sum"]) > max(trace["perceived"]) > 0   # the raw sum counts false positives too
+    table = stops.estimates_markdown({("a3de", "ap", "cubes"): [trace]}).splitlines()
+    assert len(table) == 3 and table[-1].startswith("| a3de | ap / cubes | ")
+    env = of.ObjectFindingEnv("ap", "cubes")   # on `ap` the raw sum is the state's detection factor
+    env.reset(seed=4)
+    env.step(np.array([0.5, 0.3, -0.3, 0.0, 0.4, -1.0], np.float32))
+    state = env.searcher.state(env.gripper_pose())
+    assert stops.detection_sum(env.searcher, env.cfg) == pytest.approx(float(state[of.STATE_DETECTION_SUM]), rel=1e-4)
+    env.close()
+
+
 def test_a_short_arm_soak_gets_only_finite_goals_within_a_step_and_no_traceback():
     arm = soak.run_arm_soak(frames=600, workers=1, progress=False)
     assert arm["frames"] == 600 and arm["goals"] > 100 and arm["refused"] > 100 and arm["stops"] > 0

@@ -4,9 +4,12 @@ per Table II cell; a CSV per cell and a table (stops.md) of how often a claim is
 truly seen. With --rules, each stop rule "MxV" (claim above M x 20 % in V views in a row) is scored on the
 same episodes instead: they are traced once with no claim, and each rule is applied to the trace, since the
 searchers' moves do not depend on the estimate (rules.md: early claims, success and mean steps per rule).
+With --estimates, the traces score how well two estimates tell a target truly seen from one not yet seen,
+views with 5-50 % truly seen (estimates.md): the perceived share (the searchers' stop) and the raw detection
+sum (the state's detection factor, `encode_state`).
 
     python tools/stops.py [--episodes 200] [--workers 2] [--seed 0] [--agents gnbv,ges] [--out results/stops]
-                          [--rules 1x1,1.25x2,1.5x2]
+                          [--rules 1x1,1.25x2,1.5x2 | --estimates]
 """
 import json
 import os
@@ -59,15 +62,52 @@ def trace_chunk(agent_name: str, task: str, scene: str, seeds: list, policy: dic
         agent = make_agent(agent_name, env.cfg, seed, policy)
         _, info = env.reset(seed=seed)
         agent.reset(env.searcher, env.gripper_pose())
-        perceived, truth, done = [], [], False
+        perceived, summed, truth, done = [], [], [], False
         while not done:
             perceived.append(round(env.searcher.perceived_target_share(), 6))
+            summed.append(round(detection_sum(env.searcher, env.cfg), 6))
             truth.append(round(info["target_seen_fraction"], 4))
             _, _, done, _, info = env.step(agent.act(env.searcher, env.gripper_pose()))
         traces.append(dict(seed=seed, target_present=info["target_present"], perceived=perceived, truth=truth,
-                           steps=info["steps"], success=info["success"]))
+                           detection_sum=summed, steps=info["steps"], success=info["success"]))
     env.close()
     return traces
+
+
+def detection_sum(searcher, cfg) -> float:
+    """The detection channel's sum over the volume in units of the told target's surface, counted in cells of
+    state_voxel_m: the state's detection factor where its crop holds the whole volume (`ap`)."""
+    volume = searcher.volume
+    return float(volume.detections.sum()) * volume.voxel_m ** 3 / (searcher.target_area_m2 * cfg.state_voxel_m)
+
+
+def separation(score: np.ndarray, seen: np.ndarray) -> float:
+    """The area under the ROC curve: the chance that a view with the target truly seen scores above one
+    without (ties count half); 0.5 is no better than a coin."""
+    ranks = np.argsort(np.argsort(score, kind="stable"), kind="stable") + 1.0
+    for value in np.unique(score):   # ties take their mean rank
+        ranks[score == value] = ranks[score == value].mean()
+    n_seen = seen.sum()
+    return float((ranks[seen].sum() - n_seen * (n_seen + 1) / 2) / (n_seen * (~seen).sum()))
+
+
+def estimates_markdown(cells: dict) -> str:
+    """Per cell, over its views with 5-50 % of the target truly seen: each estimate's separation of views with
+    more than 20 % truly seen from the rest, and its correlation with the true share."""
+    lines = ["| agent | task / scene | views | perceived share: separation, correlation | raw detection sum: "
+             "separation, correlation |", "|---|---|---|---|---|"]
+    for (agent, task, scene), traces in cells.items():
+        views = np.array([(p, d, t) for tr in traces if tr["target_present"]
+                          for p, d, t in zip(tr["perceived"], tr["detection_sum"], tr["truth"])]).reshape(-1, 3)
+        views = views[(views[:, 2] > 0.05) & (views[:, 2] < 0.5)]
+        seen = target_observed(views[:, 2], TASKS[task].seen_threshold)
+        if seen.all() or not seen.any():
+            lines.append(f"| {agent} | {task} / {scene} | {len(views)} | - | - |")
+            continue
+        cols = [f"{separation(views[:, k], seen):.3f}, {np.corrcoef(views[:, k], views[:, 2])[0, 1]:.2f}"
+                for k in (0, 1)]
+        lines.append(f"| {agent} | {task} / {scene} | {len(views)} | {cols[0]} | {cols[1]} |")
+    return "\n".join(lines)
 
 
 def score_rule(trace: dict, margin: float, views: int, threshold: float) -> tuple:
@@ -131,7 +171,10 @@ def cmd_stops(args) -> int:
     unknown = [a for a in agents if a not in ("gnbv", "ges", *LEARNED)]
     if unknown:
         raise UsageError(f"--agents: {unknown[0]} is not gnbv, ges, a3de or i3de")
+    if args.rules and args.estimates:
+        raise UsageError("--rules and --estimates: one at a time")
     rules = rules_arg(args.rules) if args.rules else None
+    traced = rules or args.estimates
     out, t0 = writable_folder(Path(args.out)), time.perf_counter()
     cells = {}
     for (agent, task), scenes in PAPER_TABLE_II.items():
@@ -141,18 +184,20 @@ def cmd_stops(args) -> int:
         for scene in scenes:
             seeds = list(range(args.seed, args.seed + args.episodes))
             jobs = [(agent, task, scene, seeds[i:i + EVAL_CHUNK], policy) for i in range(0, len(seeds), EVAL_CHUNK)]
-            rows = [row for part in run_jobs(trace_chunk if rules else stop_chunk, jobs, args.workers) for row in part]
+            rows = [row for part in run_jobs(trace_chunk if traced else stop_chunk, jobs, args.workers) for row in part]
             cells[(agent, task, scene)] = rows
-            if rules:
+            if traced:
                 path = out / f"{agent}-{task}-{scene}-traces.json"
                 replace_atomically(path, lambda tmp: tmp.write_text(json.dumps(rows)))
-                print(rules_markdown({(agent, task, scene): rows}, rules).splitlines()[-1], flush=True)
+                cell = {(agent, task, scene): rows}
+                print((rules_markdown(cell, rules) if rules else estimates_markdown(cell)).splitlines()[-1], flush=True)
                 continue
             write_csv(rows, out / f"{agent}-{task}-{scene}.csv", STOP_FIELDS)
             print(stops_markdown({(agent, task, scene): rows}, TASKS[task].seen_threshold).splitlines()[-1],
                   flush=True)
-    markdown = rules_markdown(cells, rules) if rules else stops_markdown(cells, TASKS["ap"].seen_threshold)
-    name = "rules.md" if rules else "stops.md"
+    markdown, name = ((rules_markdown(cells, rules), "rules.md") if rules else
+                      (estimates_markdown(cells), "estimates.md") if args.estimates else
+                      (stops_markdown(cells, TASKS["ap"].seen_threshold), "stops.md"))
     replace_atomically(out / name, lambda tmp: tmp.write_text(markdown + "\n"))
     print(markdown)
     print(f"wrote {out / name} and a file per cell; {time.perf_counter() - t0:.0f} s")
@@ -168,6 +213,8 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--out", default="results/stops", help="folder for the CSVs and stops.md")
     parser.add_argument("--rules", help="score these stop rules instead, comma-separated MxV: claim above M x "
                                         "20 %% in V views in a row (e.g. 1x1,1.25x2)")
+    parser.add_argument("--estimates", action="store_true", help="score how well the perceived share and the raw "
+                                                                 "detection sum tell the target seen instead")
     parser.set_defaults(func=cmd_stops)
     return parser
 
