@@ -66,9 +66,9 @@ class Settings:
     # Sec. IV-A
     trunc_m: float = 0.04               # TSDF truncation distance
     voxels_per_side: int = 100          # "resolution of 100 voxels per side"
-    state_voxel_m: float = 0.006        # the state's detection sum and the seen target area are counted in cells of
-                                        # this size (the policies' training resolution: 0.6 m / 100), whatever
-                                        # the volume's voxel size, so a finer volume gives the same state and share
+    state_voxel_m: float = 0.006        # the seen target area (the state's and the searchers' share) is counted in
+                                        # cells of this size (the policies' training resolution: 0.6 m / 100),
+                                        # whatever the volume's voxel size, so a finer volume gives the same share
     max_weight: float = 2.0             # Sec. III-B.1: max TSDF weight, fast forgetting after pushes
     crop_m: float = 1.2                 # state crop: square around the end-effector
     max_step_m: float = 0.06            # max translation per step
@@ -583,12 +583,12 @@ def pool_columns(maps: np.ndarray, bins: np.ndarray) -> np.ndarray:
 
 
 def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, finger_z: float,
-                 crop_m: float, detection_scale: float, state_voxel_m: float) -> np.ndarray:
+                 crop_m: float, target_share: float) -> np.ndarray:
     """Fig. 2's state, (71,) float32: TSDF above / below the fingertips, then detections above / below, summed
     along z and pooled into 17 bins around the gripper, each pair normalised by its own sum; then the TSDF sum
-    per voxel, the detection sum in units of `detection_scale` (a whole target's), and the roll. The detection
-    band is trunc_m thick whatever the voxel size, so its voxel count grows as 1 / voxel_m: the sum is counted
-    in voxels of state_voxel_m, and a scene fused at any resolution gives about the same state."""
+    per voxel, the detection part's factor, and the roll. That factor is `target_share`, the share of the
+    target's surface the volume holds as seen, not the raw detection sum: the sum counts every false positive
+    of the detector, and tracks the truth near the 20 % bar far worse (README, "Choices")."""
     nx, ny, nz = volume.shape
     k = int(np.clip(round(finger_z / volume.voxel_m), 0, nz))
     # Summing each column above and below the fingertips is one matrix product with a (nz, 2) mask.
@@ -604,7 +604,7 @@ def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, fing
     tsdf_sum, det_sum = pooled[:2].sum(), pooled[2:].sum()
     pooled[:2] /= tsdf_sum if abs(tsdf_sum) > 1e-6 else 1.0
     pooled[2:] /= det_sum if abs(det_sum) > 1e-6 else 1.0
-    sums = [tsdf_sum / volume.tsdf.size, det_sum / detection_scale * (volume.voxel_m / state_voxel_m)]
+    sums = [tsdf_sum / volume.tsdf.size, target_share]
     return np.concatenate([pooled.reshape(-1), sums, [ee_roll]]).astype(np.float32)
 
 
@@ -730,7 +730,7 @@ class Searcher:
     def __init__(self, cfg: Settings, rig: Rig | None = None):
         self.rig = rig or wrist_rig(cfg)
         self.volume = TSDFVolume(cfg)
-        self.crop_m, self.state_voxel_m = cfg.crop_m, cfg.state_voxel_m
+        self.crop_m = cfg.crop_m
         self.claim_share, self.confirm_views = cfg.claim_margin * cfg.seen_threshold, cfg.confirm_views
         self.detection_threshold = cfg.detection_threshold
         self.workspace_m, self.ceiling_m = cfg.workspace_m, cfg.ceiling_m           # the box it moves in
@@ -769,14 +769,13 @@ class Searcher:
         return newly
 
     def state(self, T_world_tool: np.ndarray) -> np.ndarray:
-        """The 71 values of Fig. 2 around a gripper pose; the detection sum in units of the told target's
-        surface, counted in voxel faces."""
+        """The 71 values of Fig. 2 around a gripper pose; the detection part's factor is the perceived share of
+        the told target's surface."""
         key = (self.views, T_world_tool.tobytes())
         if self._state_of[0] != key:
             yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
             self._state_of = (key, encode_state(self.volume, T_world_tool[:3, 3], yaw, roll, T_world_tool[2, 3],
-                                                self.crop_m, self.target_area_m2 / self.volume.voxel_m ** 2,
-                                                self.state_voxel_m))
+                                                self.crop_m, self.perceived_target_share()))
         return self._state_of[1].copy()
 
     def perceived_target_share(self) -> float:
@@ -3141,7 +3140,7 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
                   "decision_ms")   # the columns of an evaluation CSV, one row per episode ...
 ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
-WORLD_REVISION = 9   # of the simulated world and the agents: raised by every change that alters the episodes
+WORLD_REVISION = 10  # of the simulated world and the agents: raised by every change that alters the episodes
                      # of a seed (the model card says what each revision changed)
 
 
