@@ -83,8 +83,8 @@ class Settings:
     gnbv_explored_to_stop: float = 0.97 # GNBV terminates above this explored share ("no target")
     seen_threshold: float = 0.2         # target observed once more than this share of its surface was seen
     # The information rule, where the paper is silent: what every agent is told about its target. True:
-    # its size (surface area) is part of the task; the baselines' perceived share and the encoder's
-    # detection sum are relative to it. False: no agent is told; both are relative to the nominal cube.
+    # its size (surface area) is part of the task; the perceived share seen (the searchers' stop, the
+    # state's detection factor) is relative to it. False: no agent is told; it is relative to the nominal cube.
     target_size_known: bool = True
     # Table II caption: primitive and shape piles hold more objects
     objects_per_pile_dense: tuple = (15, 30)
@@ -547,7 +547,7 @@ class TSDFVolume:
 BINS = 17                      # pooled cells per map (Fig. 2)
 MAP_NAMES = ("TSDF above", "TSDF below", "detections above", "detections below")   # of the fingertips
 MAPS = len(MAP_NAMES)
-STATE_TSDF_SUM, STATE_DETECTION_SUM, STATE_ROLL = MAPS * BINS, MAPS * BINS + 1, MAPS * BINS + 2
+STATE_TSDF_SUM, STATE_TARGET_SHARE, STATE_ROLL = MAPS * BINS, MAPS * BINS + 1, MAPS * BINS + 2
 STATE_SIZE = MAPS * BINS + 3   # 71: the maps, the two sums, the roll
 
 # The 17 bins, seen from above in the end-effector's yaw frame (x forward, y to the left):
@@ -3400,7 +3400,7 @@ def bins_panel(state: np.ndarray) -> np.ndarray:
         x0, y0 = 12 + (m % 2) * 156, 30 + (m // 2) * 106
         panel[y0:y0 + BINS_PANEL_PX, x0:x0 + BINS_PANEL_PX] = tile
         cv2.putText(panel, name, (x0 + 2, y0 - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-    sums = (f"tsdf sum {state[STATE_TSDF_SUM]:.2f}, det sum {state[STATE_DETECTION_SUM]:.2f}, "
+    sums = (f"tsdf sum {state[STATE_TSDF_SUM]:.2f}, share seen {state[STATE_TARGET_SHARE]:.2f}, "
             f"roll {state[STATE_ROLL]:.2f}")
     return label(panel, f"state bins ({sums})")
 
