@@ -731,6 +731,9 @@ class Searcher:
         self.rig = rig or wrist_rig(cfg)
         self.volume = TSDFVolume(cfg)
         self.crop_m = cfg.crop_m
+        # The state's share is on the simulated camera's scale: a rig whose camera swells the estimate, so that
+        # its searchers need a wider claim margin, has the share shrunk by the same ratio (README, "Choices").
+        self.state_share_scale = Settings.claim_margin / cfg.claim_margin
         self.claim_share, self.confirm_views = cfg.claim_margin * cfg.seen_threshold, cfg.confirm_views
         self.detection_threshold = cfg.detection_threshold
         self.workspace_m, self.ceiling_m = cfg.workspace_m, cfg.ceiling_m           # the box it moves in
@@ -770,12 +773,12 @@ class Searcher:
 
     def state(self, T_world_tool: np.ndarray) -> np.ndarray:
         """The 71 values of Fig. 2 around a gripper pose; the detection part's factor is the perceived share of
-        the told target's surface."""
+        the told target's surface, on the simulated camera's scale."""
         key = (self.views, T_world_tool.tobytes())
         if self._state_of[0] != key:
             yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
             self._state_of = (key, encode_state(self.volume, T_world_tool[:3, 3], yaw, roll, T_world_tool[2, 3],
-                                                self.crop_m, self.perceived_target_share()))
+                                                self.crop_m, self.perceived_target_share() * self.state_share_scale))
         return self._state_of[1].copy()
 
     def perceived_target_share(self) -> float:
