@@ -274,7 +274,7 @@ def test_a_detection_to_the_gripper_left_lands_in_a_left_bin_whatever_the_yaw(ya
         volume.detections[:] = 0
         xy = ee[:2] + of.rotation(yaw, "z")[:2, :2] @ [forward, left]
         put(volume, volume.detections, xy, 0.05, 1.0)
-        state = of.encode_state(volume, ee, yaw, 0.0, 0.2, 1.2, 1.0, volume.voxel_m)
+        state = of.encode_state(volume, ee, yaw, 0.0, 0.2, 1.2, 0.0)
         bin_index = bin_at(forward, left)
         assert np.argmax(state[below:below + of.BINS]) == bin_index and state[below + bin_index] == 1.0
 
