@@ -173,6 +173,8 @@ class Settings:
     claim_margin: float = 1.25          # the searchers claim "found" once the estimate is above this x
     confirm_views: int = 2              # seen_threshold in this many views in a row: the estimate's spread
                                         # at the bar alone gave 0.6-8.5 % early claims (weights/README.md)
+    state_share_scale: float = 1.0      # the state carries the perceived share times this: on the simulated camera's
+                                        # scale, for a policy trained there (the rig's estimate spreads wider)
     area_median_px: int = 0             # the area a pixel covers is taken on depth median-filtered over this
                                         # many pixels (0: none); 1 % ToF noise alone nearly doubles it (README)
     # baselines
@@ -222,6 +224,7 @@ RIG_SENSING = dict(
     camera_offset_m=0.12,                                      # assumed: what the fingertips touch lies beyond
                                                                # the minimum range (8 cm: GES blind, README)
     area_median_px=3,                                          # the robot's filter for such a camera (README)
+    state_share_scale=1.25 / 2.0,                              # its searchers claim at 2 x the bar, not 1.25 x
     hand_eye_error_m=0.003, hand_eye_error_rad=0.0175)         # assumed: 3 mm and 1 degree
 
 TASKS = {
@@ -731,9 +734,7 @@ class Searcher:
         self.rig = rig or wrist_rig(cfg)
         self.volume = TSDFVolume(cfg)
         self.crop_m = cfg.crop_m
-        # The state's share is on the simulated camera's scale: a rig whose camera swells the estimate, so that
-        # its searchers need a wider claim margin, has the share shrunk by the same ratio (README, "Choices").
-        self.state_share_scale = Settings.claim_margin / cfg.claim_margin
+        self.state_share_scale = cfg.state_share_scale
         self.claim_share, self.confirm_views = cfg.claim_margin * cfg.seen_threshold, cfg.confirm_views
         self.detection_threshold = cfg.detection_threshold
         self.workspace_m, self.ceiling_m = cfg.workspace_m, cfg.ceiling_m           # the box it moves in
@@ -773,7 +774,7 @@ class Searcher:
 
     def state(self, T_world_tool: np.ndarray) -> np.ndarray:
         """The 71 values of Fig. 2 around a gripper pose; the detection part's factor is the perceived share of
-        the told target's surface, on the simulated camera's scale."""
+        the told target's surface, on the simulated camera's scale (`state_share_scale`)."""
         key = (self.views, T_world_tool.tobytes())
         if self._state_of[0] != key:
             yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
@@ -2256,7 +2257,7 @@ SETTINGS_RANGES = {
     "exploration_normaliser": "(0, inf)", "surface_points": "[1, 100000]", "seen_min_cos": "[0, 0.99]",
     "detection_threshold": "(0, 1]", "outline_pixel_share": "[0, 1]", "gnbv_rays": "[1, inf)",
     "gnbv_min_detections": "[1, inf)", "gnbv_stall_steps": "[1, inf)", "ges_tries_per_node": "[1, inf)",
-    "claim_margin": "[1, 5]", "confirm_views": "[1, 100]",
+    "claim_margin": "[1, 5]", "confirm_views": "[1, 100]", "state_share_scale": "(0, 10]",
     "state_voxel_m": "[0.001, 1]", "object_size_m": "[0.005, 1]"}   # a cell or an object finer costs memory as 1/v^3
 PPO_RANGES = {
     "hidden": "[1, 1024]", "batch_steps": "[1, 1000000]", "epochs": "[1, 1000]", "minibatch": "[1, inf)",
