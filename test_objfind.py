@@ -1257,11 +1257,10 @@ def test_train_and_demo_bad_input_is_one_line_and_exit_two(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("agent, task, name", [("a3de", "ap", "a3de.pt"), ("a3de", "ap-large", "a3de-large.pt"),
-                                               ("i3de", "ip", "i3de.pt"), ("a3de", "ap-real", "a3de-rig.pt"),
-                                               ("i3de", "ip-real", "i3de-rig.pt")])   # the rig's: on its replica
+                                               ("i3de", "ip", "i3de.pt")])
 def test_the_shipped_weights_load_and_act(agent, task, name):
     path = Path(of.__file__).resolve().parent / "weights" / name
-    assert "rig" in name or of.default_weights(agent, task) == path     # Table II's are eval's default
+    assert of.default_weights(agent, task) == path     # eval's default
     checkpoint = of.read_checkpoint(path)
     assert checkpoint["obs_dim"] == 71 and checkpoint["env_steps"] > 0 and checkpoint["task"] == task
     policy = of.PPOAgent(of.learned_policy(agent, task, path))
