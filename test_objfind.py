@@ -2307,7 +2307,7 @@ def test_gnbv_counts_the_same_voxels_with_its_rays_cut_where_they_can_hit_nothin
 
 # --- recordings, replay and the arm's loop ---------------------------------------------------------
 
-RECORDED_SEED = 1   # the shipped I3DE pushes for 30 steps on this ip/cubes scene, then stops
+RECORDED_SEED = 1   # the shipped I3DE searches this ip/cubes scene for 13 steps, moving an object once, then stops
 
 
 @pytest.fixture(scope="module")
