@@ -49,7 +49,8 @@ def run_sensor_study(out: Path, episodes: int, seed: int, workers: int) -> dict:
     """Every point's episodes (a CSV each, read back when already there), as {(row, sweep, level): summary}."""
     seeds, cells = list(range(seed, seed + episodes)), {}
     runs = [(row, point) for row in SENSOR_AGENTS for point in sensor_points()]
-    runs += [(row, point) for row in SENSOR_BASELINES for point in sensor_points() if point[0] in ("ideal", "rig camera")]
+    runs += [(row, point) for row in SENSOR_BASELINES
+             for point in sensor_points() if point[0] in ("ideal", "rig camera")]
     policies = {row: learned_policy(*row) for row in SENSOR_AGENTS}   # each checkpoint read once
     stored = [stored_cell(out / point_file(agent, task, sweep, level), seeds,   # every CSV checked first
                           cell_origin(agent, task, "cubes", policies.get((agent, task)), overrides))
