@@ -66,9 +66,9 @@ class Settings:
     # Sec. IV-A
     trunc_m: float = 0.04               # TSDF truncation distance
     voxels_per_side: int = 100          # "resolution of 100 voxels per side"
-    state_voxel_m: float = 0.006        # the state's detection sum and the seen target area are counted in cells of
-                                        # this size (the policies' training resolution: 0.6 m / 100), whatever
-                                        # the volume's voxel size, so a finer volume gives the same state and share
+    state_voxel_m: float = 0.006        # the seen target area (the state's and the searchers' share) is counted in
+                                        # cells of this size (the policies' training resolution: 0.6 m / 100),
+                                        # whatever the volume's voxel size, so a finer volume gives the same share
     max_weight: float = 2.0             # Sec. III-B.1: max TSDF weight, fast forgetting after pushes
     crop_m: float = 1.2                 # state crop: square around the end-effector
     max_step_m: float = 0.06            # max translation per step
@@ -83,8 +83,8 @@ class Settings:
     gnbv_explored_to_stop: float = 0.97 # GNBV terminates above this explored share ("no target")
     seen_threshold: float = 0.2         # target observed once more than this share of its surface was seen
     # The information rule, where the paper is silent: what every agent is told about its target. True:
-    # its size (surface area) is part of the task; the baselines' perceived share and the encoder's
-    # detection sum are relative to it. False: no agent is told; both are relative to the nominal cube.
+    # its size (surface area) is part of the task; the perceived share seen (the searchers' stop, the
+    # state's detection factor) is relative to it. False: no agent is told; it is relative to the nominal cube.
     target_size_known: bool = True
     # Table II caption: primitive and shape piles hold more objects
     objects_per_pile_dense: tuple = (15, 30)
@@ -173,6 +173,8 @@ class Settings:
     claim_margin: float = 1.25          # the searchers claim "found" once the estimate is above this x
     confirm_views: int = 2              # seen_threshold in this many views in a row: the estimate's spread
                                         # at the bar alone gave 0.6-8.5 % early claims (weights/README.md)
+    state_share_scale: float = 1.0      # the state carries the perceived share times this: on the simulated camera's
+                                        # scale, for a policy trained there (the rig's estimate spreads wider)
     area_median_px: int = 0             # the area a pixel covers is taken on depth median-filtered over this
                                         # many pixels (0: none); 1 % ToF noise alone nearly doubles it (README)
     # baselines
@@ -222,6 +224,7 @@ RIG_SENSING = dict(
     camera_offset_m=0.12,                                      # assumed: what the fingertips touch lies beyond
                                                                # the minimum range (8 cm: GES blind, README)
     area_median_px=3,                                          # the robot's filter for such a camera (README)
+    state_share_scale=1.25 / 2.0,                              # its searchers claim at 2 x the bar, not 1.25 x
     hand_eye_error_m=0.003, hand_eye_error_rad=0.0175)         # assumed: 3 mm and 1 degree
 
 TASKS = {
@@ -547,7 +550,7 @@ class TSDFVolume:
 BINS = 17                      # pooled cells per map (Fig. 2)
 MAP_NAMES = ("TSDF above", "TSDF below", "detections above", "detections below")   # of the fingertips
 MAPS = len(MAP_NAMES)
-STATE_TSDF_SUM, STATE_DETECTION_SUM, STATE_ROLL = MAPS * BINS, MAPS * BINS + 1, MAPS * BINS + 2
+STATE_TSDF_SUM, STATE_TARGET_SHARE, STATE_ROLL = MAPS * BINS, MAPS * BINS + 1, MAPS * BINS + 2
 STATE_SIZE = MAPS * BINS + 3   # 71: the maps, the two sums, the roll
 
 # The 17 bins, seen from above in the end-effector's yaw frame (x forward, y to the left):
@@ -583,12 +586,12 @@ def pool_columns(maps: np.ndarray, bins: np.ndarray) -> np.ndarray:
 
 
 def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, finger_z: float,
-                 crop_m: float, detection_scale: float, state_voxel_m: float) -> np.ndarray:
+                 crop_m: float, target_share: float) -> np.ndarray:
     """Fig. 2's state, (71,) float32: TSDF above / below the fingertips, then detections above / below, summed
     along z and pooled into 17 bins around the gripper, each pair normalised by its own sum; then the TSDF sum
-    per voxel, the detection sum in units of `detection_scale` (a whole target's), and the roll. The detection
-    band is trunc_m thick whatever the voxel size, so its voxel count grows as 1 / voxel_m: the sum is counted
-    in voxels of state_voxel_m, and a scene fused at any resolution gives about the same state."""
+    per voxel, the detection part's factor, and the roll. That factor is `target_share`, the share of the
+    target's surface the volume holds as seen, not the raw detection sum: the sum counts every false positive
+    of the detector, and tracks the truth near the 20 % bar far worse (README, "Choices")."""
     nx, ny, nz = volume.shape
     k = int(np.clip(round(finger_z / volume.voxel_m), 0, nz))
     # Summing each column above and below the fingertips is one matrix product with a (nz, 2) mask.
@@ -604,7 +607,7 @@ def encode_state(volume: TSDFVolume, ee_xyz, ee_yaw: float, ee_roll: float, fing
     tsdf_sum, det_sum = pooled[:2].sum(), pooled[2:].sum()
     pooled[:2] /= tsdf_sum if abs(tsdf_sum) > 1e-6 else 1.0
     pooled[2:] /= det_sum if abs(det_sum) > 1e-6 else 1.0
-    sums = [tsdf_sum / volume.tsdf.size, det_sum / detection_scale * (volume.voxel_m / state_voxel_m)]
+    sums = [tsdf_sum / volume.tsdf.size, target_share]
     return np.concatenate([pooled.reshape(-1), sums, [ee_roll]]).astype(np.float32)
 
 
@@ -730,7 +733,8 @@ class Searcher:
     def __init__(self, cfg: Settings, rig: Rig | None = None):
         self.rig = rig or wrist_rig(cfg)
         self.volume = TSDFVolume(cfg)
-        self.crop_m, self.state_voxel_m = cfg.crop_m, cfg.state_voxel_m
+        self.crop_m = cfg.crop_m
+        self.state_share_scale = cfg.state_share_scale
         self.claim_share, self.confirm_views = cfg.claim_margin * cfg.seen_threshold, cfg.confirm_views
         self.detection_threshold = cfg.detection_threshold
         self.workspace_m, self.ceiling_m = cfg.workspace_m, cfg.ceiling_m           # the box it moves in
@@ -769,14 +773,13 @@ class Searcher:
         return newly
 
     def state(self, T_world_tool: np.ndarray) -> np.ndarray:
-        """The 71 values of Fig. 2 around a gripper pose; the detection sum in units of the told target's
-        surface, counted in voxel faces."""
+        """The 71 values of Fig. 2 around a gripper pose; the detection part's factor is the perceived share of
+        the told target's surface, on the simulated camera's scale (`state_share_scale`)."""
         key = (self.views, T_world_tool.tobytes())
         if self._state_of[0] != key:
             yaw, roll = yaw_roll_of(T_world_tool[:3, :3])
             self._state_of = (key, encode_state(self.volume, T_world_tool[:3, 3], yaw, roll, T_world_tool[2, 3],
-                                                self.crop_m, self.target_area_m2 / self.volume.voxel_m ** 2,
-                                                self.state_voxel_m))
+                                                self.crop_m, self.perceived_target_share() * self.state_share_scale))
         return self._state_of[1].copy()
 
     def perceived_target_share(self) -> float:
@@ -2254,7 +2257,7 @@ SETTINGS_RANGES = {
     "exploration_normaliser": "(0, inf)", "surface_points": "[1, 100000]", "seen_min_cos": "[0, 0.99]",
     "detection_threshold": "(0, 1]", "outline_pixel_share": "[0, 1]", "gnbv_rays": "[1, inf)",
     "gnbv_min_detections": "[1, inf)", "gnbv_stall_steps": "[1, inf)", "ges_tries_per_node": "[1, inf)",
-    "claim_margin": "[1, 5]", "confirm_views": "[1, 100]",
+    "claim_margin": "[1, 5]", "confirm_views": "[1, 100]", "state_share_scale": "(0, 10]",
     "state_voxel_m": "[0.001, 1]", "object_size_m": "[0.005, 1]"}   # a cell or an object finer costs memory as 1/v^3
 PPO_RANGES = {
     "hidden": "[1, 1024]", "batch_steps": "[1, 1000000]", "epochs": "[1, 1000]", "minibatch": "[1, inf)",
@@ -3141,7 +3144,7 @@ EPISODE_FIELDS = ("seed", "target_present", "success", "steps", "target_seen_fra
                   "decision_ms")   # the columns of an evaluation CSV, one row per episode ...
 ORIGIN_FIELDS = ("agent", "task", "scene", "weights", "target_size_known", "world", "versions")   # what made it
 CELL_IDENTITY = ORIGIN_FIELDS[:-1]   # a table's cell must match these; other versions are reported, not refused
-WORLD_REVISION = 9   # of the simulated world and the agents: raised by every change that alters the episodes
+WORLD_REVISION = 10  # of the simulated world and the agents: raised by every change that alters the episodes
                      # of a seed (the model card says what each revision changed)
 
 
@@ -3401,7 +3404,7 @@ def bins_panel(state: np.ndarray) -> np.ndarray:
         x0, y0 = 12 + (m % 2) * 156, 30 + (m // 2) * 106
         panel[y0:y0 + BINS_PANEL_PX, x0:x0 + BINS_PANEL_PX] = tile
         cv2.putText(panel, name, (x0 + 2, y0 - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-    sums = (f"tsdf sum {state[STATE_TSDF_SUM]:.2f}, det sum {state[STATE_DETECTION_SUM]:.2f}, "
+    sums = (f"tsdf sum {state[STATE_TSDF_SUM]:.2f}, share seen {state[STATE_TARGET_SHARE]:.2f}, "
             f"roll {state[STATE_ROLL]:.2f}")
     return label(panel, f"state bins ({sums})")
 

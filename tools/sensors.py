@@ -12,7 +12,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from objfind import (LEARNED, RIG_SENSING, ArgumentParser, cell_origin, default_weights,  # noqa: E402
+from objfind import (RIG_SENSING, ArgumentParser, cell_origin,  # noqa: E402
                      episodes_arg, evaluate, learned_policy, replace_atomically, run_cli, save_figure, seed_arg,
                      stored_cell, summarise, workers_arg, write_csv, writable_folder)
 
@@ -28,8 +28,7 @@ SENSOR_SWEEPS = (   # (name, axis title, a level in words, what it sets, four le
     ("hand-eye error", "hand-eye error (mm, and mm / 3 degrees)", lambda x: f"{x:g} mm, {x / 3:g} deg",
      lambda x: dict(hand_eye_error_m=x / 1000, hand_eye_error_rad=np.radians(x / 3)), (0, 3, 6, 12)),
 )
-SENSOR_AGENTS = (("a3de", "ap", None), ("i3de", "ip", None),   # (agent, task, weights/ file or the default)
-                 ("i3de", "ip", "i3de-rig.pt"))                 # the rig's I3DE, fine-tuned on its replica
+SENSOR_AGENTS = (("a3de", "ap"), ("i3de", "ip"))                # Table II's weights
 SENSOR_BASELINES = (("gnbv", "ap"), ("ges", "ip"))               # with the ideal camera and the rig's
 
 
@@ -42,37 +41,35 @@ def sensor_points() -> list:
     return points + [("rig errors", 1, RIG_ERRORS), ("rig camera", 1, RIG_SENSING)]
 
 
-def point_file(agent: str, task: str, weights: str | None, sweep: str, level: float) -> str:
-    tag = f"{agent}-{Path(weights).stem}" if weights else agent
-    return f"{tag}-{task}-{sweep.replace(' ', '-')}-{level:g}.csv"
+def point_file(agent: str, task: str, sweep: str, level: float) -> str:
+    return f"{agent}-{task}-{sweep.replace(' ', '-')}-{level:g}.csv"
 
 
 def run_sensor_study(out: Path, episodes: int, seed: int, workers: int) -> dict:
     """Every point's episodes (a CSV each, read back when already there), as {(row, sweep, level): summary}."""
     seeds, cells = list(range(seed, seed + episodes)), {}
-    runs = [((agent, task, weights), point) for agent, task, weights in SENSOR_AGENTS for point in sensor_points()]
-    runs += [((agent, task, None), point) for agent, task in SENSOR_BASELINES
+    runs = [(row, point) for row in SENSOR_AGENTS for point in sensor_points()]
+    runs += [(row, point) for row in SENSOR_BASELINES
              for point in sensor_points() if point[0] in ("ideal", "rig camera")]
-    policies = {row: learned_policy(row[0], row[1], row[2] and default_weights(*row[:2]).with_name(row[2]))
-                for row in {row for row, _ in runs} if row[0] in LEARNED}   # each checkpoint read once
-    stored = [stored_cell(out / point_file(agent, task, weights, sweep, level), seeds,   # every CSV checked first
-                          cell_origin(agent, task, "cubes", policies.get((agent, task, weights)), overrides))
-              for (agent, task, weights), (sweep, level, overrides) in runs]
-    for ((agent, task, weights), (sweep, level, overrides)), rows in zip(runs, stored):
-        policy = policies.get((agent, task, weights))
-        path = out / point_file(agent, task, weights, sweep, level)
+    policies = {row: learned_policy(*row) for row in SENSOR_AGENTS}   # each checkpoint read once
+    stored = [stored_cell(out / point_file(agent, task, sweep, level), seeds,   # every CSV checked first
+                          cell_origin(agent, task, "cubes", policies.get((agent, task)), overrides))
+              for (agent, task), (sweep, level, overrides) in runs]
+    for ((agent, task), (sweep, level, overrides)), rows in zip(runs, stored):
+        path = out / point_file(agent, task, sweep, level)
         if rows is None:
-            rows = evaluate(agent, task, "cubes", episodes, seed, workers, policy=policy, overrides=overrides)
+            rows = evaluate(agent, task, "cubes", episodes, seed, workers, policy=policies.get((agent, task)),
+                            overrides=overrides)
             write_csv(rows, path)
-        cells[(agent, task, weights), sweep, level] = summarise(rows)
+        cells[(agent, task), sweep, level] = summarise(rows)
     return cells
 
 
 def sensor_markdown(cells: dict, episodes: int) -> str:
     """The study as a table: a row per point, a column per agent, success % [95 %] / steps."""
-    rows = list(SENSOR_AGENTS) + [(agent, task, None) for agent, task in SENSOR_BASELINES]
+    rows = SENSOR_AGENTS + SENSOR_BASELINES
     words = {name: describe for name, _, describe, _, _ in SENSOR_SWEEPS}
-    header = ["depth camera"] + [f"{a.upper()}{f' ({w})' if w else ''}, {t}" for a, t, w in rows]
+    header = ["depth camera"] + [f"{a.upper()}, {t}" for a, t in rows]
     lines = [f"Success % [95 %] / average steps over {episodes} paired episodes per point on cubes (episode i is "
              "scene seed + i at every point).", "", "| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for sweep, level, _ in sensor_points():
@@ -97,7 +94,7 @@ def plot_sensor_study(cells: dict, path: Path) -> None:
         for r, row in enumerate(SENSOR_AGENTS):
             found = [(i, cells.get((row, *point))) for i, (_, point) in enumerate(levels)]
             x = np.array([i for i, c in found if c]) + 0.04 * r
-            label = f"{row[0].upper()}{f' ({row[2]})' if row[2] else ''} on {row[1]}"
+            label = f"{row[0].upper()} on {row[1]}"
             success = np.array([[c["success"], c["success_lo"], c["success_hi"]] for _, c in found if c]).reshape(-1, 3)
             axes[0, p].errorbar(x, success[:, 0], yerr=np.abs(success[:, 1:].T - success[:, 0]), color=f"C{r}",
                                 label=label, capsize=2)

@@ -5,8 +5,8 @@ truly seen. With --rules, each stop rule "MxV" (claim above M x 20 % in V views 
 same episodes instead: they are traced once with no claim, and each rule is applied to the trace, since the
 searchers' moves do not depend on the estimate (rules.md: early claims, success and mean steps per rule).
 With --estimates, the traces score how well two estimates tell a target truly seen from one not yet seen,
-views with 5-50 % truly seen (estimates.md): the perceived share (the searchers' stop) and the raw detection
-sum (the state's detection factor, `encode_state`).
+views with 5-50 % truly seen (estimates.md): the perceived share (the searchers' stop and, since world 10,
+the state's detection factor) and the raw detection sum (world 9's state).
 
     python tools/stops.py [--episodes 200] [--workers 2] [--seed 0] [--agents gnbv,ges] [--out results/stops]
                           [--rules 1x1,1.25x2,1.5x2 | --estimates]
@@ -76,7 +76,7 @@ def trace_chunk(agent_name: str, task: str, scene: str, seeds: list, policy: dic
 
 def detection_sum(searcher, cfg) -> float:
     """The detection channel's sum over the volume in units of the told target's surface, counted in cells of
-    state_voxel_m: the state's detection factor where its crop holds the whole volume (`ap`)."""
+    state_voxel_m: world 9's state value (it summed the state's crop, all of the `ap` volume)."""
     volume = searcher.volume
     return float(volume.detections.sum()) * volume.voxel_m ** 3 / (searcher.target_area_m2 * cfg.state_voxel_m)
 
