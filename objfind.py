@@ -551,7 +551,7 @@ BINS = 17                      # pooled cells per map (Fig. 2)
 MAP_NAMES = ("TSDF above", "TSDF below", "detections above", "detections below")   # of the fingertips
 MAPS = len(MAP_NAMES)
 STATE_TSDF_SUM, STATE_TARGET_SHARE, STATE_ROLL = MAPS * BINS, MAPS * BINS + 1, MAPS * BINS + 2
-STATE_SIZE = MAPS * BINS + 3   # 71: the maps, the two sums, the roll
+STATE_SIZE = MAPS * BINS + 3   # 71: the maps, the two normalisation factors (Fig. 2), the roll
 
 # The 17 bins, seen from above in the end-effector's yaw frame (x forward, y to the left):
 # a 3 x 3 grid of crop/3 cells indexed (a, b) with a along x (0 back .. 2 front) and b along y
